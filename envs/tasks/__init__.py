@@ -1,0 +1,5 @@
+"""Registered tasks. Importing this package registers the built-in ones."""
+
+from envs.tasks.base import TASKS, Demos, Episode, StateLayout, Task, UnknownTaskError, get_task, register
+
+__all__ = ["TASKS", "Demos", "Episode", "StateLayout", "Task", "UnknownTaskError", "get_task", "register"]
