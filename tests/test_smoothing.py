@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+import torch
+
+from stm.plans import FOUR_GOALS, jittery_skeletons, straight_line_plans
+from stm.smoothing import smooth_exact, smooth_gd, smoothing_objective, smoothness_metrics
+
+
+@pytest.fixture(scope="module")
+def skeletons():
+    return jittery_skeletons(straight_line_plans(FOUR_GOALS[:2], steps=20), seed=1)
+
+
+def test_gradient_descent_converges_to_exact_solve(skeletons):
+    exact = smooth_exact(skeletons, gamma=4.0)
+    gd = smooth_gd(skeletons, gamma=4.0, iters=400)
+    np.testing.assert_allclose(gd, exact, atol=1e-7)
+
+
+def test_exact_solve_is_a_stationary_point_and_keeps_start(skeletons):
+    sk = torch.as_tensor(skeletons)
+    q = smooth_exact(sk, gamma=3.0).requires_grad_(True)
+    smoothing_objective(q, sk, 3.0).sum().backward()
+    assert q.grad[:, 1:].abs().max() < 1e-9  # zero gradient w.r.t. every free point
+    assert torch.equal(q.detach()[:, 0], sk[:, 0])
+    np.testing.assert_array_equal(smooth_gd(skeletons, 3.0, iters=5)[:, 0], skeletons[:, 0])
+
+
+def test_gamma_zero_returns_the_skeleton(skeletons):
+    np.testing.assert_allclose(smooth_exact(skeletons, 0.0), skeletons, atol=1e-12)
+
+
+def test_smoothing_reduces_jerk_and_goal_term_reduces_goal_error(skeletons):
+    goals = FOUR_GOALS[:2]
+    plain = smooth_gd(skeletons, gamma=5.0, iters=200)
+    with_goal = smooth_gd(skeletons, gamma=5.0, goal=goals, goal_weight=50.0, iters=200)
+    before = smoothness_metrics(skeletons, skeletons, goals)
+    after = smoothness_metrics(plain, skeletons, goals)
+    after_goal = smoothness_metrics(with_goal, skeletons, goals)
+    assert after["mean_sq_jerk"] < 0.05 * before["mean_sq_jerk"]
+    assert after["peak_joint_speed"] < before["peak_joint_speed"]
+    assert after_goal["goal_error_m"] < 0.5 * after["goal_error_m"]
+    assert after_goal["goal_error_m"] < 0.02
+    assert before["deviation_rad"] == 0.0 < after["deviation_rad"]
+
+
+def test_metrics_on_known_signals():
+    dt = 0.1
+    t = np.arange(11) * dt
+    cubic = np.repeat((2.0 * t**3 / 6.0)[None, :, None], 7, axis=2)  # constant jerk 2 rad/s^3
+    m = smoothness_metrics(cubic, step_seconds=dt)
+    assert m["mean_sq_jerk"] == pytest.approx(4.0, rel=1e-9)
+    ramp = np.zeros((1, 11, 7))
+    ramp[0, :, 3] = 0.5 * t  # 0.5 rad/s on one joint
+    m = smoothness_metrics(ramp, skeleton=np.zeros_like(ramp), step_seconds=dt)
+    assert m["mean_sq_jerk"] == pytest.approx(0.0, abs=1e-12)
+    assert m["peak_joint_speed"] == pytest.approx(0.5)
+    assert m["deviation_rad"] == pytest.approx(np.mean(0.5 * t))
+
+
+def test_bad_shapes_raise_clear_errors():
+    with pytest.raises(ValueError, match="shape"):
+        smooth_exact(np.zeros((5, 7)))
+    with pytest.raises(ValueError, match="gamma"):
+        smooth_gd(np.zeros((1, 4, 7)), gamma=-1.0)
