@@ -1,0 +1,69 @@
+"""Checkpoints: one plain dict, written atomically, read with weights_only=True.
+
+Keys: format_version, model (state dict incl. normalisation buffers), optimizer,
+model_config, train_config, layout (dicts), task, iteration, seconds,
+rng (torch global + the trainer's batch generator), history, stopped_early.
+Everything needed to resume bit-exactly and nothing that needs unpickling code.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from stm.config import ModelConfig
+from stm.model import STM, layout_from_dict
+
+FORMAT_VERSION = 1
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that cannot be used: unreadable, corrupt or of another format version."""
+
+
+def save_checkpoint(payload: dict[str, Any], path: Path) -> Path:
+    """Write to a temporary file in the same folder, then rename over `path` (atomic on POSIX)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises assorted errors for truncated or foreign files
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(exc).__name__}: {exc}".splitlines()[0]) from None
+    if not isinstance(ckpt, dict) or "format_version" not in ckpt:
+        raise CheckpointError(f"{path} is not an STM checkpoint (no format_version)")
+    if ckpt["format_version"] != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {path} has format version {ckpt['format_version']}, "
+                              f"this code reads version {FORMAT_VERSION}")
+    return ckpt
+
+
+def model_from_checkpoint(ckpt: dict[str, Any]) -> STM:
+    model = STM(ModelConfig.from_dict(ckpt["model_config"]), layout_from_dict(ckpt["layout"]))
+    model.load_state_dict(ckpt["model"])
+    return model.eval()
+
+
+def load_model(path: Path) -> STM:
+    """The trained STM stored in a checkpoint (eval mode, CPU)."""
+    return model_from_checkpoint(load_checkpoint(path))

@@ -1,0 +1,91 @@
+"""Isotropic Gaussian mixtures, as in the paper: weights alpha_i, means mu_i (D)
+and ONE sigma_i per component,
+    g_i(s) = (2 pi sigma_i^2)^(-D/2) exp(-||s - mu_i||^2 / (2 sigma_i^2)).
+
+Shapes: logit_alpha (..., m), mu (..., m, D), log_sigma (..., m), points (..., D).
+Everything works in log space (log_softmax for the weights, logsumexp over
+components), so extreme sigmas give large but finite numbers, never NaN.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def split_params(raw: torch.Tensor, mixtures: int, dim: int, sigma_min: float) -> tuple[torch.Tensor, ...]:
+    """Head output (..., m * (D + 2)) -> (logit_alpha, mu, log_sigma).
+
+    sigma = sigma_min + softplus(raw): smooth, positive, floored at sigma_min, and
+    its log never underflows (the floor keeps log_sigma >= log(sigma_min)).
+    """
+    m = mixtures
+    logit_alpha = raw[..., :m]
+    log_sigma = torch.log(sigma_min + F.softplus(raw[..., m:2 * m]))
+    mu = raw[..., 2 * m:].unflatten(-1, (m, dim))
+    return logit_alpha, mu, log_sigma
+
+
+def head_size(mixtures: int, dim: int) -> int:
+    return mixtures * (dim + 2)
+
+
+def component_log_prob(mu: torch.Tensor, log_sigma: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """log g_i(target) for each component: (..., m)."""
+    dim = mu.shape[-1]
+    sq = (target.unsqueeze(-2) - mu).square().sum(-1)
+    return -0.5 * dim * _LOG_2PI - dim * log_sigma - 0.5 * sq * torch.exp(-2.0 * log_sigma)
+
+
+def mixture_nll(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor,
+                target: torch.Tensor) -> torch.Tensor:
+    """Negative log-likelihood of `target` under the mixture, per element: shape (...)."""
+    log_alpha = F.log_softmax(logit_alpha, dim=-1)
+    return -torch.logsumexp(log_alpha + component_log_prob(mu, log_sigma, target), dim=-1)
+
+
+def component_mean(logit_alpha: torch.Tensor, mu: torch.Tensor) -> torch.Tensor:
+    """Mean of the most likely component (..., D); differentiable w.r.t. mu."""
+    idx = logit_alpha.argmax(dim=-1, keepdim=True)  # (..., 1)
+    return torch.gather(mu, -2, idx.unsqueeze(-1).expand(*idx.shape, mu.shape[-1])).squeeze(-2)
+
+
+def mixture_mean(logit_alpha: torch.Tensor, mu: torch.Tensor) -> torch.Tensor:
+    """sum_i alpha_i mu_i (..., D)."""
+    return (torch.softmax(logit_alpha, dim=-1).unsqueeze(-1) * mu).sum(-2)
+
+
+def sample(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor, *, temperature: float = 1.0,
+           generator: torch.Generator | None = None) -> torch.Tensor:
+    """Draw one point per mixture (..., D).
+
+    Temperature tau sharpens the weights (logits / tau) and scales each sigma by
+    sqrt(tau); tau -> 0 approaches the component mean. The draw is reparameterised
+    (mu + sigma * eps), so gradients flow to mu and sigma of the chosen component.
+    """
+    if temperature <= 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    probs = torch.softmax(logit_alpha.detach() / temperature, dim=-1)
+    flat = probs.reshape(-1, probs.shape[-1])
+    idx = torch.multinomial(flat, 1, generator=generator).reshape(*probs.shape[:-1], 1)
+    dim = mu.shape[-1]
+    mu_k = torch.gather(mu, -2, idx.unsqueeze(-1).expand(*idx.shape, dim)).squeeze(-2)
+    sigma_k = torch.exp(torch.gather(log_sigma, -1, idx)) * math.sqrt(temperature)
+    eps = torch.randn(mu_k.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+    return mu_k + sigma_k * eps
+
+
+def point(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor, mode: str, *,
+          temperature: float = 1.0, generator: torch.Generator | None = None) -> torch.Tensor:
+    """One point of the mixture chosen by `mode` (sample | component_mean | mixture_mean)."""
+    if mode == "component_mean":
+        return component_mean(logit_alpha, mu)
+    if mode == "mixture_mean":
+        return mixture_mean(logit_alpha, mu)
+    if mode == "sample":
+        return sample(logit_alpha, mu, log_sigma, temperature=temperature, generator=generator)
+    raise ValueError(f"unknown mixture point mode {mode!r}; known: sample, component_mean, mixture_mean")

@@ -1,0 +1,133 @@
+"""The state transition model (STM): p(s_{t+1} | s_t, h_t).
+
+A multi-layer LSTM reads normalised states and a head maps each hidden state to
+the next state: a point (deterministic head, MSE) or an isotropic Gaussian
+mixture (MDN head, NLL). What is predicted is the whole next state
+s_{t+1} = (dq, grip?, phi, psi) in normalised units; what is *used* when the
+prediction is fed back (training feedback and rollouts, `feedback_state`):
+  - dq: integrated into the joint positions, q_{t+1} = clamp(q_t + dq);
+  - grip: rounded to {0, 1} (straight-through gradient);
+  - phi: recomputed by forward kinematics of q_{t+1} ("grounded", default) or
+    the model's own prediction ("free");
+  - psi: never the prediction; always the task's psi at t+1.
+Per-dimension normalisation statistics are buffers, so they live in the
+checkpoint with the weights.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import torch
+from torch import nn
+
+from envs.tasks.base import StateLayout
+from stm import mdn
+from stm.config import ModelConfig
+
+STD_FLOOR = 1e-6  # a constant state dimension normalises to 0 instead of dividing by 0
+
+
+def layout_to_dict(layout: StateLayout) -> dict:
+    d = asdict(layout)
+    d["phi_names"], d["psi_names"] = list(d["phi_names"]), list(d["psi_names"])
+    return d
+
+
+def layout_from_dict(d: dict) -> StateLayout:
+    d = dict(d)
+    d["phi_names"], d["psi_names"] = tuple(d.get("phi_names", ())), tuple(d.get("psi_names", ()))
+    return StateLayout(**d)
+
+
+class STM(nn.Module):
+    def __init__(self, config: ModelConfig, layout: StateLayout,
+                 state_mean: torch.Tensor | None = None, state_std: torch.Tensor | None = None):
+        super().__init__()
+        self.config, self.layout = config, layout
+        dim = layout.dim
+        self.dim = dim
+        self.register_buffer("state_mean", torch.zeros(dim) if state_mean is None else state_mean.float().clone())
+        self.register_buffer("state_std", torch.ones(dim) if state_std is None else state_std.float().clone())
+        self.lstm = nn.LSTM(dim, config.hidden_size, config.num_layers, batch_first=True)
+        out = mdn.head_size(config.mixtures, dim) if config.head == "mdn" else dim
+        self.head = nn.Linear(config.hidden_size, out)
+
+    @property
+    def is_mdn(self) -> bool:
+        return self.config.head == "mdn"
+
+    # normalisation -------------------------------------------------------
+    def normalize(self, s: torch.Tensor) -> torch.Tensor:
+        return (s - self.state_mean) / self.state_std
+
+    def denormalize(self, z: torch.Tensor) -> torch.Tensor:
+        return z * self.state_std + self.state_mean
+
+    # network -------------------------------------------------------------
+    def forward(self, z: torch.Tensor, hc: tuple[torch.Tensor, torch.Tensor] | None = None):
+        """Normalised states (B, T, D) -> head outputs (B, T, out), (h, c)."""
+        h, hc = self.lstm(z, hc)
+        return self.head(h), hc
+
+    def loss(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Mean per-step loss over the valid steps: NLL (MDN) or MSE averaged over dims (deterministic).
+
+        raw (B, T, out), target (B, T, D) normalised next states, mask (B, T) bool.
+        """
+        if self.is_mdn:
+            per_step = mdn.mixture_nll(*self.mixture(raw), target)
+        else:
+            per_step = (raw - target).square().mean(-1)
+        m = mask.to(per_step.dtype)
+        return (per_step * m).sum() / m.sum().clamp_min(1.0)
+
+    def mixture(self, raw: torch.Tensor):
+        return mdn.split_params(raw, self.config.mixtures, self.dim, self.config.sigma_min)
+
+    def predict(self, raw: torch.Tensor, mode: str = "component_mean", *, temperature: float = 1.0,
+                generator: torch.Generator | None = None) -> torch.Tensor:
+        """Head output -> one predicted next state in normalised units (the deterministic head ignores mode)."""
+        if not self.is_mdn:
+            return raw
+        return mdn.point(*self.mixture(raw), mode, temperature=temperature, generator=generator)
+
+
+def initial_state(task, kin, q0: torch.Tensor, psi0: torch.Tensor, grip0: torch.Tensor | None = None) -> torch.Tensor:
+    """s_0 of an episode (dq_0 = 0; gripper open unless given)."""
+    grip = None
+    if task.layout.gripper:
+        grip = torch.zeros(q0.shape[:-1], dtype=q0.dtype) if grip0 is None else grip0
+    return task.states(q0, q0, grip, psi0, kin).to(q0.dtype)
+
+
+def feedback_state(task, kin, pred: torch.Tensor, q_prev: torch.Tensor, psi: torch.Tensor,
+                   phi_mode: str = "grounded") -> tuple[torch.Tensor, torch.Tensor]:
+    """Assemble the state fed back from a predicted next state (raw units, (B, D)).
+
+    Returns (state (B, D), q (B, 7)). The same function serves training feedback
+    and rollouts, so both see identically built states.
+    """
+    layout = task.layout
+    q = kin.clamp(q_prev + pred[..., layout.dq])
+    grip = None
+    if layout.gripper:
+        g = pred[..., layout.grip.start].clamp(0.0, 1.0)
+        grip = g + (torch.round(g) - g).detach()  # binary command, straight-through gradient
+    if phi_mode == "grounded":
+        s = task.states(q, q_prev, grip, psi, kin)
+    elif phi_mode == "free":
+        parts = [q - q_prev] + ([grip.unsqueeze(-1)] if grip is not None else [])
+        s = torch.cat(parts + [pred[..., layout.phi], psi], dim=-1)
+    else:
+        raise ValueError(f"unknown phi_mode {phi_mode!r}; known: grounded, free")
+    return s.to(pred.dtype), q
+
+
+def normalization_stats(states: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-dimension mean and std over the valid rows of (N, T+1, D) states."""
+    rows = states[mask]
+    mean = rows.mean(0)
+    std = rows.std(0, unbiased=False).clamp_min(STD_FLOOR)
+    return mean, std
+

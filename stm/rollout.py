@@ -1,0 +1,104 @@
+"""Closed-loop generation of joint trajectories with a trained STM, then their
+execution in pybullet through the task's physics check.
+
+Generation is batched: B episodes (of possibly different horizons, padded to the
+longest) advance together, one LSTM step and one batched FK per time step, with
+the same state assembly as training (`stm.model.feedback_state`). Each episode's
+psi is read per step from `episode.psi`, so a goal switch is a change of rows.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from envs.kinematics import default_kinematics
+from envs.tasks.base import Episode, Task
+from stm.model import STM, feedback_state, initial_state
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Rollouts:
+    """q (B, H+1, 7) and grip (B, H+1) numpy; rows past an episode's horizon repeat its last row.
+    seconds: wall time of the generation (model + FK), not of physics."""
+
+    q: np.ndarray
+    grip: np.ndarray
+    seconds: float
+    horizons: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.horizons)
+
+
+def _padded_psi(episodes: list[Episode], horizon: int) -> torch.Tensor:
+    rows = []
+    for ep in episodes:
+        psi = np.asarray(ep.psi, dtype=np.float32)
+        if psi.shape[0] < ep.horizon + 1:
+            raise ValueError(f"episode psi has {psi.shape[0]} rows, needs horizon+1 = {ep.horizon + 1}")
+        psi = psi[: ep.horizon + 1]
+        pad = np.repeat(psi[-1:], horizon + 1 - psi.shape[0], axis=0)
+        rows.append(np.concatenate([psi, pad], axis=0))
+    return torch.as_tensor(np.stack(rows))
+
+
+@torch.no_grad()
+def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str = "component_mean", seed: int = 0,
+             temperature: float = 1.0, phi_mode: str = "grounded") -> Rollouts:
+    """Unroll the model from each episode's q0 for its horizon."""
+    if not episodes:
+        raise ValueError("generate needs at least one episode")
+    if model.layout.dim != task.layout.dim:
+        raise ValueError(f"model state size {model.layout.dim} does not match task {task.name!r} "
+                         f"state size {task.layout.dim}")
+    was_training = model.training
+    model.eval()
+    kin = default_kinematics(torch.float32)
+    gen = torch.Generator().manual_seed(seed)
+    horizons = np.array([ep.horizon for ep in episodes], dtype=np.int64)
+    H = int(horizons.max())
+    start = time.perf_counter()
+    psi = _padded_psi(episodes, H)
+    q = torch.as_tensor(np.stack([ep.q0 for ep in episodes]), dtype=torch.float32)
+    s = initial_state(task, kin, q, psi[:, 0])
+    B = len(episodes)
+    qs, grips = torch.empty(B, H + 1, 7), torch.zeros(B, H + 1)
+    qs[:, 0] = q
+    hc = None
+    grip_idx = task.layout.grip.start if task.layout.gripper else None
+    for t in range(H):
+        raw, hc = model(model.normalize(s).unsqueeze(1), hc)
+        pred = model.denormalize(model.predict(raw[:, 0], feedback, temperature=temperature, generator=gen))
+        s, q = feedback_state(task, kin, pred, q, psi[:, t + 1], phi_mode)
+        qs[:, t + 1] = q
+        if grip_idx is not None:
+            grips[:, t + 1] = s[:, grip_idx]
+    seconds = time.perf_counter() - start
+    model.train(was_training)
+    q_np, grip_np = qs.numpy().astype(np.float64), grips.numpy().astype(np.float64)
+    for i, h in enumerate(horizons):  # pad past each horizon with the last valid row
+        q_np[i, h + 1:] = q_np[i, h]
+        grip_np[i, h + 1:] = grip_np[i, h]
+    return Rollouts(q=q_np, grip=grip_np, seconds=seconds, horizons=horizons)
+
+
+def evaluate(task: Task, rollouts: Rollouts, episodes: list[Episode], progress: bool = False) -> list[dict[str, float]]:
+    """Execute each generated trajectory in pybullet (task.evaluate); one metrics dict per episode."""
+    if len(rollouts) != len(episodes):
+        raise ValueError(f"{len(rollouts)} rollouts for {len(episodes)} episodes")
+    out = []
+    bar = tqdm(episodes, desc=f"physics {task.name}", disable=not (progress and sys.stderr.isatty()))
+    for i, ep in enumerate(bar):
+        h = int(rollouts.horizons[i])
+        grip = rollouts.grip[i, : h + 1] if task.layout.gripper else None
+        out.append(task.evaluate(rollouts.q[i, : h + 1], grip, ep))
+    return out

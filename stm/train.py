@@ -1,0 +1,288 @@
+"""Training: teacher forcing and auto-conditioning, Adam, gradient clipping, a
+NaN/inf guard, exact resume from checkpoints, callbacks for tracking.
+
+Auto-conditioning schedule over the input steps t = 0..T-1 of a sequence:
+[gt]*u + [self]*v repeated (`schedule`). A ground-truth step feeds the demo state
+s_t; a self step feeds the state assembled (`stm.model.feedback_state`) from the
+model's own prediction of s_t made at step t-1, with q_t = q_{t-1} + dq_pred
+integrated from the last fed state's q. v = 0 is plain teacher forcing. The loss
+is on every valid step (padded steps masked out), as in the acLSTM reference.
+
+Speed: consecutive ground-truth steps go through the LSTM in one fused call
+(cuDNN-style multi-step kernel); only the self-fed steps are stepped one by one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from envs.kinematics import default_kinematics
+from envs.tasks.base import Demos, Episode, Task
+from stm.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
+from stm.config import ModelConfig, TrainConfig
+from stm.model import STM, feedback_state, layout_to_dict, normalization_stats
+
+log = logging.getLogger(__name__)
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss or the gradient became NaN/inf; the last good checkpoint is left on disk."""
+
+    def __init__(self, iteration: int, what: str = "loss"):
+        super().__init__(f"training diverged at iteration {iteration}: non-finite {what}")
+        self.iteration = iteration
+
+
+@dataclass
+class TrainResult:
+    model: STM
+    history: dict[str, list[float]]
+    seconds: float
+    iterations: int
+    stopped_early: bool = False
+    checkpoint_path: Path | None = None
+
+
+@dataclass
+class Batch:
+    """Tensors of a batch of demos, cropped to the longest: states (B, T+1, D) raw units,
+    q (B, T+1, 7), psi (B, T+1, P), mask (B, T) True where transition t -> t+1 is valid."""
+
+    states: torch.Tensor
+    q: torch.Tensor
+    psi: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass
+class DemoTensors:
+    states: torch.Tensor
+    q: torch.Tensor
+    psi: torch.Tensor
+    lengths: torch.Tensor
+    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, task: Task, demos: Demos) -> DemoTensors:
+        if len(demos) == 0:
+            raise ValueError("the demonstration set is empty")
+        states = task.demo_states(demos, default_kinematics(torch.float64))
+        if states.shape[-1] != task.layout.dim:
+            raise ValueError(f"demo states have size {states.shape[-1]}, task layout says {task.layout.dim}")
+        return cls(states=torch.as_tensor(states, dtype=torch.float32),
+                   q=torch.as_tensor(demos.q, dtype=torch.float32),
+                   psi=torch.as_tensor(demos.psi, dtype=torch.float32),
+                   lengths=torch.as_tensor(demos.lengths, dtype=torch.long))
+
+    def batch(self, idx: torch.Tensor) -> Batch:
+        lengths = self.lengths[idx]
+        T = int(lengths.max())
+        mask = torch.arange(T)[None, :] < lengths[:, None]
+        return Batch(self.states[idx, : T + 1], self.q[idx, : T + 1], self.psi[idx, : T + 1], mask)
+
+
+def schedule(T: int, u: int, v: int) -> torch.Tensor:
+    """(T,) bool: True where input step t is ground truth ([gt]*u + [self]*v repeated)."""
+    t = torch.arange(T)
+    return torch.ones(T, dtype=torch.bool) if v == 0 else (t % (u + v)) < u
+
+
+def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generator: torch.Generator | None = None,
+           *, return_inputs: bool = False):
+    """Head outputs (B, T, out) for the inputs of `batch` under cfg's schedule.
+
+    With return_inputs, also the normalised inputs actually fed (B, T, D).
+    """
+    z_gt = model.normalize(batch.states[:, :-1])
+    T = z_gt.shape[1]
+    if cfg.v == 0:
+        raw, _ = model(z_gt)
+        return (raw, z_gt) if return_inputs else raw
+    hs, inputs = [], []
+    hc = None
+    t = 0
+    while t < T:
+        n = min(cfg.u, T - t)  # ground-truth chunk: one fused LSTM call
+        h, hc = model.lstm(z_gt[:, t: t + n], hc)
+        hs.append(h)
+        inputs.append(z_gt[:, t: t + n])
+        t += n
+        q = batch.q[:, t - 1]
+        last = h[:, -1]
+        for _ in range(min(cfg.v, T - t)):  # self-fed steps
+            pred = model.denormalize(model.predict(model.head(last), cfg.feedback, temperature=cfg.temperature,
+                                                   generator=generator))
+            s, q = feedback_state(task, kin, pred, q, batch.psi[:, t], cfg.phi_mode)
+            z = model.normalize(s)
+            if cfg.detach_feedback:
+                z, q = z.detach(), q.detach()
+            h, hc = model.lstm(z.unsqueeze(1), hc)
+            hs.append(h)
+            inputs.append(z.unsqueeze(1))
+            last = h[:, 0]
+            t += 1
+    raw = model.head(torch.cat(hs, dim=1))
+    return (raw, torch.cat(inputs, dim=1)) if return_inputs else raw
+
+
+def batch_loss(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin,
+               generator: torch.Generator | None = None) -> torch.Tensor:
+    raw = unroll(model, batch, task, cfg, kin, generator)
+    return model.loss(raw, model.normalize(batch.states[:, 1:]), batch.mask)
+
+
+def demo_episodes(demos: Demos, n: int) -> list[Episode]:
+    """The first n demonstrations as episodes (start, psi per step, horizon)."""
+    return [Episode(q0=demos.q[i, 0], psi=demos.psi[i, : demos.lengths[i] + 1], horizon=int(demos.lengths[i]))
+            for i in range(min(n, len(demos)))]
+
+
+def rollout_error(model: STM, task: Task, demos: Demos, n: int) -> float:
+    """Validation metric (m, lower is better): mean distance between the tool tip at the end of a
+    closed-loop rollout (component mean, grounded) and at the end of the demo it replays."""
+    from envs.kinematics import tip_position_np
+    from stm.rollout import generate
+
+    episodes = demo_episodes(demos, n)
+    ro = generate(model, task, episodes)
+    ends = np.array([ro.q[i, ep.horizon] for i, ep in enumerate(episodes)])
+    demo_ends = np.array([demos.q[i, ep.horizon] for i, ep in enumerate(episodes)])
+    return float(np.linalg.norm(tip_position_np(ends) - tip_position_np(demo_ends), axis=-1).mean())
+
+
+def _sample_indices(n: int, b: int, gen: torch.Generator) -> torch.Tensor:
+    if b <= n:
+        return torch.randperm(n, generator=gen)[:b]
+    return torch.randint(n, (b,), generator=gen)
+
+
+def _checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history, seconds, stopped_early):
+    return {
+        "format_version": FORMAT_VERSION,
+        "model": model.state_dict(),
+        "optimizer": opt.state_dict(),
+        "model_config": model_cfg.to_dict(),
+        "train_config": train_cfg.to_dict(),
+        "layout": layout_to_dict(task.layout),
+        "task": task.name,
+        "iteration": iteration,
+        "seconds": seconds,
+        "rng": {"torch": torch.get_rng_state(), "batch": gen.get_state()},
+        "history": history,
+        "stopped_early": stopped_early,
+    }
+
+
+_RESUME_FREE = {"iters", "checkpoint_every", "log_every", "val_every"}  # may change between runs
+
+
+def _check_resumable(ckpt: dict, model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, path: Path) -> None:
+    if ckpt["model_config"] != model_cfg.to_dict():
+        raise ValueError(f"checkpoint {path} was trained with another model config: {ckpt['model_config']}")
+    if ckpt["layout"] != layout_to_dict(task.layout):
+        raise ValueError(f"checkpoint {path} has state layout {ckpt['layout']}, task {task.name!r} has another")
+    old = {k: v for k, v in ckpt["train_config"].items() if k not in _RESUME_FREE}
+    new = {k: v for k, v in train_cfg.to_dict().items() if k not in _RESUME_FREE}
+    if old != new:
+        diff = sorted(k for k in new if old.get(k) != new[k])
+        raise ValueError(f"checkpoint {path} was trained with other settings ({', '.join(diff)}); "
+                         "delete it or pass resume=False")
+
+
+def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Demos, *,
+          checkpoint_path: Path | None = None, resume: bool = True,
+          on_metrics: Callable[[int, dict[str, float]], None] | None = None,
+          on_checkpoint: Callable[[Path, int], None] | None = None,
+          on_validation: Callable[[int, float], bool] | None = None,
+          progress: bool = False) -> TrainResult:
+    """Train an STM on `demos` of `task`; see the module docstring for the schedule."""
+    kin = default_kinematics(torch.float32)
+    data = DemoTensors.build(task, demos)
+    N = len(demos)
+    valid = torch.arange(data.states.shape[1])[None, :] <= data.lengths[:, None]
+    torch.manual_seed(train_cfg.seed)
+    model = STM(model_cfg, task.layout, *normalization_stats(data.states, valid))
+    opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
+    gen = torch.Generator().manual_seed(train_cfg.seed)
+    history: dict[str, list[float]] = {"train/loss": [], "train/grad_norm": [], "val/iteration": [],
+                                       "val/metric": []}
+    start_iter, seconds_before, stopped_early = 0, 0.0, False
+    ckpt_path = Path(checkpoint_path) if checkpoint_path is not None else None
+
+    if ckpt_path is not None and resume and ckpt_path.exists():
+        ckpt = load_checkpoint(ckpt_path)
+        _check_resumable(ckpt, model_cfg, train_cfg, task, ckpt_path)
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        gen.set_state(ckpt["rng"]["batch"])
+        history = {k: list(v) for k, v in ckpt["history"].items()}
+        start_iter, seconds_before = int(ckpt["iteration"]), float(ckpt["seconds"])
+        stopped_early = bool(ckpt.get("stopped_early", False))
+        log.info("resuming from %s at iteration %d", ckpt_path, start_iter)
+
+    t0 = time.perf_counter()
+
+    def save(iteration: int) -> None:
+        if ckpt_path is None:
+            return
+        payload = _checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history,
+                                      seconds_before + time.perf_counter() - t0, stopped_early)
+        save_checkpoint(payload, ckpt_path)
+        if on_checkpoint is not None:
+            on_checkpoint(ckpt_path, iteration)
+
+    iteration = start_iter
+    show = progress and sys.stderr.isatty()
+    bar = tqdm(total=train_cfg.iters, initial=start_iter, desc="train", disable=not show)
+    model.train()
+    try:
+        while iteration < train_cfg.iters and not stopped_early:
+            batch = data.batch(_sample_indices(N, train_cfg.batch_size, gen))
+            loss = batch_loss(model, batch, task, train_cfg, kin, gen)
+            if not torch.isfinite(loss):
+                raise TrainingDiverged(iteration + 1, "loss")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            clip = train_cfg.grad_clip if train_cfg.grad_clip > 0 else math.inf
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+            if not torch.isfinite(grad_norm):
+                raise TrainingDiverged(iteration + 1, "gradient")
+            opt.step()
+            iteration += 1
+            history["train/loss"].append(loss.item())
+            history["train/grad_norm"].append(grad_norm.item())
+            bar.update(1)
+            if train_cfg.log_every and iteration % train_cfg.log_every == 0:
+                window = history["train/loss"][-train_cfg.log_every:]
+                bar.set_postfix(loss=f"{window[-1]:.4g}")
+                if on_metrics is not None:
+                    on_metrics(iteration, {"train/loss": float(np.mean(window)),
+                                           "train/grad_norm": history["train/grad_norm"][-1],
+                                           "train/seconds": seconds_before + time.perf_counter() - t0})
+            if train_cfg.val_every and iteration % train_cfg.val_every == 0:
+                value = rollout_error(model, task, demos, train_cfg.val_episodes)
+                model.train()
+                history["val/iteration"].append(float(iteration))
+                history["val/metric"].append(value)
+                if on_validation is not None and on_validation(iteration, value):
+                    stopped_early = True
+                    log.info("stopped early at iteration %d (validation %.4g)", iteration, value)
+            if train_cfg.checkpoint_every and iteration % train_cfg.checkpoint_every == 0 and not stopped_early:
+                save(iteration)
+    finally:
+        bar.close()
+    save(iteration)
+    model.eval()
+    return TrainResult(model=model, history=history, seconds=seconds_before + time.perf_counter() - t0,
+                       iterations=iteration, stopped_early=stopped_early, checkpoint_path=ckpt_path)
