@@ -1,0 +1,208 @@
+"""The ablation runner: cells = training tasks x variants x seeds, each a child run of the
+study's parent run; FINISHED cells with the same config hash are skipped, unfinished ones
+resume in their own run from its checkpoint artifact, failures are recorded and summarised.
+
+The main process creates the store, the experiment, the parent run and every child run
+(serialising schema creation and run creation); cells then run in K spawned processes that
+log through MlflowClient (with retries on SQLite lock contention)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+
+from experiments.cells import Cell, build_cells
+from experiments.config import StudyConfig
+from experiments.tracking import (
+    PARENT_TAG,
+    Client,
+    child_runs,
+    get_or_create_experiment,
+    get_or_create_parent_run,
+    log_params,
+    provenance_params,
+    runs_page_url,
+    set_tags,
+    tracking_uri,
+)
+from experiments.worker import CellResult, run_cell
+
+log = logging.getLogger(__name__)
+EXPERIMENT = "ablation"
+
+
+@dataclass
+class StudyOutcome:
+    experiment_id: str
+    parent_run_id: str
+    study_name: str
+    results: list[CellResult] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def failures(self) -> list[CellResult]:
+        return [r for r in self.results if r.status != "FINISHED"]
+
+
+def default_workers() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc="cells", unit="cell", disable=not enabled)
+
+
+def prepare_runs(client: Client, experiment_id: str, parent_id: str, cells: list[Cell]
+                 ) -> tuple[list[tuple[Cell, str]], list[str]]:
+    """(cell, run id) to run -- an unfinished run of the same config is reused so that it
+    resumes -- and the keys of cells already FINISHED."""
+    by_hash: dict[str, list] = {}
+    for run in child_runs(client, experiment_id, parent_id):
+        by_hash.setdefault(run.data.tags.get("config_hash", ""), []).append(run)
+    todo, skipped = [], []
+    for cell in cells:
+        runs = sorted(by_hash.get(cell.config_hash, []), key=lambda r: r.info.start_time, reverse=True)
+        if any(r.info.status == "FINISHED" for r in runs):
+            skipped.append(cell.key)
+            continue
+        tags = {PARENT_TAG: parent_id, "task": cell.task, "variant": cell.variant, "seed": cell.seed,
+                "profile": cell.profile, "config_hash": cell.config_hash, "study_name": cell.study_name,
+                "role": "cell", "eval_tasks": ",".join(cell.eval_tasks)}
+        if runs:  # killed or failed before: resume in the same run
+            run_id = runs[0].info.run_id
+        else:
+            run_id = client.create_run(experiment_id, run_name=cell.key.replace("/", "-"),
+                                       tags={k: str(v) for k, v in tags.items()}).info.run_id
+        todo.append((cell, run_id))
+    return todo, skipped
+
+
+def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
+    start = time.perf_counter()
+    uri = tracking_uri()
+    cells = build_cells(cfg)
+    study_name = cfg.resolved_study_name()
+    client = Client(uri)
+    experiment_id = get_or_create_experiment(client, EXPERIMENT)
+    parent_id = get_or_create_parent_run(client, experiment_id, study_name,
+                                         {"kind": "ablation", "profile": cfg.profile})
+    log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
+                                   "study_hash": cfg.study_hash(), **provenance_params()})
+    outcome = StudyOutcome(experiment_id, parent_id, study_name)
+    todo, outcome.skipped = prepare_runs(client, experiment_id, parent_id, cells)
+    for key in outcome.skipped:
+        log.info("skip %s: FINISHED with the same config hash", key)
+    workers = cfg.workers or default_workers()
+    workers = max(1, min(workers, len(todo))) if todo else 1
+    interactive = sys.stderr.isatty() if progress is None else progress
+    log.info("study %r: %d cells (%d to run, %d done) with %d worker(s); store %s", study_name, len(cells),
+             len(todo), len(outcome.skipped), workers, uri)
+    level = logging.getLogger().getEffectiveLevel()
+    bar = _progress(len(todo), interactive)
+    try:
+        if workers == 1:
+            for cell, run_id in todo:
+                res = run_cell(cell.to_dict(), uri, run_id, progress=interactive, log_level=level)
+                _record(outcome, res, bar, len(todo), interactive)
+        else:
+            _run_parallel(todo, uri, workers, outcome, bar, level, interactive)
+    finally:
+        bar.close()
+    outcome.seconds = time.perf_counter() - start
+    status = "FAILED" if outcome.failures else "FINISHED"
+    set_tags(client, parent_id, {"cells": len(cells), "failed_cells": len(outcome.failures),
+                                 "skipped_cells": len(outcome.skipped)})
+    client.log_metric(parent_id, "time/study_seconds", outcome.seconds)
+    client.set_terminated(parent_id, status)
+    return outcome
+
+
+def _record(outcome: StudyOutcome, res: CellResult, bar, total: int, interactive: bool) -> None:
+    outcome.results.append(res)
+    bar.update(1)
+    if not interactive:
+        log.info("[%d/%d] %s %s in %.0fs%s", len(outcome.results), total, res.key, res.status, res.seconds,
+                 f": {res.error}" if res.error else "")
+
+
+def _run_parallel(todo, uri, workers, outcome, bar, level, interactive) -> None:
+    ctx = mp.get_context("spawn")  # fresh interpreters: no forked torch/pybullet/sqlite state
+    pending = {}
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            for cell, run_id in todo:
+                fut = pool.submit(run_cell, cell.to_dict(), uri, run_id, False, level)
+                pending[fut] = (cell, run_id)
+            for fut in as_completed(pending):
+                cell, run_id = pending[fut]
+                try:
+                    res = fut.result()
+                except BrokenProcessPool:
+                    raise
+                except Exception as exc:  # e.g. a result that failed to pickle
+                    res = CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}")
+                _record(outcome, res, bar, len(todo), interactive)
+    except BrokenProcessPool as exc:
+        done = {r.run_id for r in outcome.results}
+        client = Client(uri)
+        for cell, run_id in todo:
+            if run_id not in done:
+                text = f"worker process died ({exc}); re-run the study to resume this cell"
+                try:
+                    set_tags(client, run_id, {"error": text})
+                    client.set_terminated(run_id, "FAILED")
+                except Exception:
+                    log.exception("could not mark run %s FAILED", run_id)
+                _record(outcome, CellResult(cell.key, run_id, "FAILED", error=text), bar, len(todo), interactive)
+
+
+def success_table(client: Client, experiment_id: str, parent_id: str) -> str:
+    """Markdown table: rows = variants, columns = evaluated tasks, mean success over seeds
+    (with the number of seeds) from the FINISHED child runs of the study."""
+    rows: dict[str, dict[str, list[float]]] = {}
+    columns: list[str] = []
+    for run in child_runs(client, experiment_id, parent_id):
+        if run.info.status != "FINISHED":
+            continue
+        variant = run.data.tags.get("variant", "?")
+        for key, value in run.data.metrics.items():
+            if key.endswith("/success_rate") and key.count("/") == 1:
+                task = key.split("/")[0]
+                if task not in columns:
+                    columns.append(task)
+                rows.setdefault(variant, {}).setdefault(task, []).append(value)
+    if not rows:
+        return "(no finished cells)"
+    from stm.registry import VARIANTS
+
+    order = [v for v in VARIANTS if v in rows] + sorted(set(rows) - set(VARIANTS))
+    lines = ["| variant | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for v in order:
+        cells = []
+        for t in columns:
+            vals = [x for x in rows[v].get(t, []) if not math.isnan(x)]
+            cells.append(f"{100 * sum(vals) / len(vals):.0f}% (n={len(vals)})" if vals else "-")
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def summary_text(outcome: StudyOutcome, client: Client) -> str:
+    lines = [f"study {outcome.study_name!r}: {len(outcome.results)} cell(s) run, {len(outcome.skipped)} skipped "
+             f"(already FINISHED), {len(outcome.failures)} failed, {outcome.seconds:.0f}s",
+             "success rate over seeds (mean):", success_table(client, outcome.experiment_id, outcome.parent_run_id)]
+    if outcome.failures:
+        lines.append("FAILED cells:")
+        lines += [f"  {r.key} (run {r.run_id}): {r.error}" for r in outcome.failures]
+    lines.append(f"runs: {runs_page_url(outcome.experiment_id)}  (start the UI with `nox -s ui`)")
+    lines.append(f"report: `nox -s report` writes reports/out/{outcome.study_name}/index.html")
+    return "\n".join(lines)

@@ -1,0 +1,72 @@
+"""Cells of an ablation study: one (training task, variant, seed) with its fully resolved
+model/train/eval configs and the hash that identifies it across re-runs."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from experiments.config import StudyConfig, config_hash, evaluation_tasks
+
+
+@dataclass(frozen=True)
+class Cell:
+    task: str  # training task
+    variant: str
+    seed: int
+    model: dict[str, Any]  # resolved stm ModelConfig (variant applied)
+    train: dict[str, Any]  # resolved stm TrainConfig (variant applied, seed set)
+    eval: dict[str, Any]
+    eval_tasks: tuple[str, ...]
+    profile: str
+    study_name: str
+    dataset_seed: int = 0  # the demonstrations are the same for every training seed
+
+    @property
+    def key(self) -> str:
+        return f"{self.task}/{self.variant}/seed{self.seed}"
+
+    @property
+    def resolved(self) -> dict[str, Any]:
+        """Everything that shapes this cell's results: hashed, logged as params and config.json."""
+        return {"task": self.task, "variant": self.variant, "seed": self.seed, "model": self.model,
+                "train": self.train, "eval": self.eval, "eval_tasks": list(self.eval_tasks),
+                "dataset_seed": self.dataset_seed}
+
+    @property
+    def config_hash(self) -> str:
+        return config_hash(self.resolved)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Cell:
+        return cls(**{**d, "eval_tasks": tuple(d["eval_tasks"])})
+
+
+def resolve_stm_configs(cfg: StudyConfig, task: str, variant: str, seed: int):
+    """(ModelConfig, TrainConfig) for one cell: defaults <- profile <- per-task <- variant."""
+    from stm.config import ModelConfig, TrainConfig
+    from stm.registry import get_variant
+
+    model_over, train_over = cfg.stm_dicts(task)
+    model = ModelConfig.from_dict({**ModelConfig().to_dict(), **model_over})
+    train = TrainConfig.from_dict({**TrainConfig().to_dict(), **train_over, "seed": seed})
+    return get_variant(variant).configs(model, train)
+
+
+def build_cells(cfg: StudyConfig) -> list[Cell]:
+    study_name = cfg.resolved_study_name()
+    eval_dict = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(cfg.eval).items()}
+    cells = []
+    for task in cfg.tasks:
+        eval_tasks = tuple(evaluation_tasks(task))
+        for variant in cfg.variants:
+            for seed in range(cfg.seeds):
+                model, train = resolve_stm_configs(cfg, task, variant, seed)
+                cells.append(Cell(task=task, variant=variant, seed=seed, model=model.to_dict(),
+                                  train=train.to_dict(), eval=eval_dict, eval_tasks=eval_tasks,
+                                  profile=cfg.profile, study_name=study_name))
+    return cells

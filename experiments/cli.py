@@ -1,0 +1,120 @@
+"""`python -m experiments {ablation,sweep,ui}`.
+
+Exit codes: 0 success; 1 some cells/trials failed (summary printed); 2 bad configuration
+(one line naming the field and its allowed values, printed before anything is written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from experiments.config import ConfigError, StudyConfig, available_profiles, load_profile
+
+log = logging.getLogger("experiments")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit code 2 (argparse's own code for usage errors)
+        self.exit(2, f"error: {message} (see `python -m experiments {self.prog.split()[-1]} --help`)\n")
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--profile", default="quick", help=f"config profile: {', '.join(available_profiles())}")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override any config field, e.g. --set train.iters=2000 --set per_task.pick-place.model."
+                        "mixtures=20 (repeatable)")
+    p.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="python -m experiments", description=__doc__,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    ab = sub.add_parser("ablation", help="run an ablation study (tasks x variants x seeds)")
+    _common(ab)
+    ab.add_argument("--tasks", nargs="+", default=None, help="training tasks (default: the profile's)")
+    ab.add_argument("--variants", nargs="+", default=None, help="variants (default: the profile's)")
+    ab.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1")
+    ab.add_argument("--study-name", default=None, help="parent run name (default: from the profile and config)")
+
+    sw = sub.add_parser("sweep", help="Optuna sweep of mixture count and auto-conditioning schedule")
+    _common(sw)
+    sw.add_argument("--task", default=None)
+    sw.add_argument("--variant", default=None)
+    sw.add_argument("--space", default=None, help="comma-separated subset of m,u,v,feedback,sigma_min")
+    sw.add_argument("--trials", type=int, default=None, help="total trials; a re-run continues to this many")
+    sw.add_argument("--sampler", default=None, help="tpe | grid | random")
+    sw.add_argument("--storage", default=None, help="Optuna storage URL (default: journal file next to mlflow.db)")
+    sw.add_argument("--study-name", default=None)
+
+    ui = sub.add_parser("ui", help="MLflow UI on 127.0.0.1:5000 over the study store")
+    ui.add_argument("--host", default="127.0.0.1")
+    ui.add_argument("--port", type=int, default=5000)
+    return parser
+
+
+def _split(values: list[str] | None) -> list[str] | None:
+    if values is None:
+        return None
+    return [v for item in values for v in item.split(",") if v]
+
+
+def load_config(args: argparse.Namespace) -> StudyConfig:
+    """The validated config of a command, including a dry resolution of every cell/trial so
+    that variant/schedule conflicts are reported before anything is written."""
+    if args.command == "ablation":
+        cfg = load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
+                           seeds=args.seeds, workers=args.workers, study_name=args.study_name)
+        from experiments.cells import build_cells
+
+        try:
+            build_cells(cfg)
+        except ValueError as e:
+            raise ConfigError(f"train.v: {e}") from None
+        return cfg
+    space = args.space.split(",") if args.space else None
+    cfg = load_profile(args.profile, args.overrides, workers=args.workers, **{
+        "sweep.task": args.task, "sweep.variant": args.variant, "sweep.space": space,
+        "sweep.trials": args.trials, "sweep.sampler": args.sampler, "sweep.storage": args.storage,
+        "sweep.study_name": args.study_name})
+    from experiments.sweep import check_sweep
+
+    check_sweep(cfg)
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    level = logging.DEBUG if getattr(args, "verbose", False) else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
+    for noisy in ("alembic", "mlflow", "urllib3", "matplotlib"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+    if args.command == "ui":
+        from experiments.ui import serve
+
+        return serve(args.host, args.port)
+
+    try:
+        cfg = load_config(args)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+    if args.command == "ablation":
+        from experiments.ablation import run_study, summary_text
+        from experiments.tracking import Client
+
+        outcome = run_study(cfg)
+        print(summary_text(outcome, Client()))
+        return 1 if outcome.failures else 0
+
+    from experiments.sweep import run_sweep
+
+    outcome = run_sweep(cfg)
+    print(outcome.summary())
+    return 1 if outcome.failed else 0

@@ -1,0 +1,220 @@
+"""MLflow tracking helpers: where the store is, a client that retries on SQLite lock
+contention, experiments and parent runs, batched metrics, flattened params.
+
+The store defaults to `sqlite:///mlflow.db` in the working directory (made absolute so that
+worker processes agree on it) with artifacts in `mlartifacts/` beside it; MLFLOW_TRACKING_URI
+overrides both. The main process creates the store, the experiment and the parent run before
+any worker starts (several processes migrating a fresh SQLite schema at once would race);
+workers only log through `MlflowClient`.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import random
+import subprocess
+import time
+from collections.abc import Callable, Iterable, Mapping
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from mlflow.entities import Metric, Param, RunTag
+from mlflow.tracking import MlflowClient
+
+log = logging.getLogger(__name__)
+
+DEFAULT_DB = "mlflow.db"
+PARENT_TAG = "mlflow.parentRunId"
+PACKAGES = ("torch", "numpy", "pybullet", "pytorch-kinematics", "mlflow", "optuna", "scipy", "acrmdn")
+_RETRY_MARKERS = ("database is locked", "database table is locked", "sqlite3.OperationalError", "disk I/O error")
+
+
+def tracking_uri() -> str:
+    """MLFLOW_TRACKING_URI if set, else an absolute sqlite URI for ./mlflow.db."""
+    uri = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
+    if not uri:
+        return f"sqlite:///{(Path.cwd() / DEFAULT_DB).resolve()}"
+    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
+        # relative sqlite path: pin it to the current directory for the worker processes
+        return f"sqlite:///{(Path.cwd() / uri.removeprefix('sqlite:///')).resolve()}"
+    return uri
+
+
+def store_dir(uri: str) -> Path:
+    """The folder that holds a local store (its db file), else the working directory."""
+    if uri.startswith("sqlite:///"):
+        return Path(uri.removeprefix("sqlite:///")).parent
+    if uri.startswith("file:"):
+        return Path(uri.removeprefix("file://"))
+    return Path.cwd()
+
+
+def sqlite_path(uri: str) -> Path | None:
+    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
+
+
+def _is_transient(exc: BaseException) -> bool:
+    text = f"{type(exc).__name__}: {exc}"
+    return any(m in text for m in _RETRY_MARKERS)
+
+
+def with_retries(fn: Callable, attempts: int = 8, base_delay: float = 0.05) -> Callable:
+    """Retry a store call on SQLite lock contention with exponential backoff and jitter."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        for attempt in range(attempts):
+            try:
+                return fn(*args, **kwargs)
+            except Exception as exc:  # MlflowException wraps sqlalchemy's OperationalError
+                if attempt == attempts - 1 or not _is_transient(exc):
+                    raise
+                delay = base_delay * (2**attempt) * (1 + random.random())
+                log.debug("store busy (%s); retrying in %.2fs", exc, delay)
+                time.sleep(delay)
+
+    return wrapper
+
+
+class Client:
+    """MlflowClient whose every method retries on transient SQLite errors."""
+
+    def __init__(self, uri: str | None = None):
+        self.uri = uri or tracking_uri()
+        self._client = with_retries(MlflowClient)(tracking_uri=self.uri)
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._client, name)
+        return with_retries(attr) if callable(attr) else attr
+
+
+def get_or_create_experiment(client: Client, name: str) -> str:
+    exp = client.get_experiment_by_name(name)
+    if exp is not None:
+        if exp.lifecycle_stage == "deleted":
+            client.restore_experiment(exp.experiment_id)
+        return exp.experiment_id
+    location = None
+    db = sqlite_path(client.uri)
+    if db is not None:  # keep artifacts beside the db file, not in whatever cwd a later run uses
+        location = (db.parent / "mlartifacts" / name).as_uri()
+    try:
+        return client.create_experiment(name, artifact_location=location)
+    except Exception:
+        exp = client.get_experiment_by_name(name)  # created concurrently
+        if exp is None:
+            raise
+        return exp.experiment_id
+
+
+def find_parent_run(client: Client, experiment_id: str, study_name: str):
+    runs = client.search_runs(
+        [experiment_id],
+        filter_string=f"tags.study_name = '{study_name}' and tags.role = 'parent'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+    )
+    return runs[0] if runs else None
+
+
+def get_or_create_parent_run(client: Client, experiment_id: str, study_name: str, tags: Mapping[str, str]) -> str:
+    """The study's parent run; re-running a study reuses it (and marks it RUNNING again)."""
+    run = find_parent_run(client, experiment_id, study_name)
+    all_tags = {"study_name": study_name, "role": "parent", **tags}
+    if run is None:
+        run = client.create_run(experiment_id, run_name=study_name, tags=all_tags)
+        return run.info.run_id
+    client.update_run(run.info.run_id, status="RUNNING")
+    client.log_batch(run.info.run_id, tags=[RunTag(k, str(v)) for k, v in all_tags.items()])
+    return run.info.run_id
+
+
+def child_runs(client: Client, experiment_id: str, parent_id: str) -> list:
+    return client.search_runs([experiment_id], filter_string=f"tags.`{PARENT_TAG}` = '{parent_id}'",
+                              max_results=50_000)
+
+
+def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    """{'a': {'b': 1}} -> {'a.b': '1'}; lists are joined with commas."""
+    out: dict[str, str] = {}
+    for key, value in d.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(flatten(value, f"{name}."))
+        elif isinstance(value, (list, tuple)):
+            out[name] = ",".join(str(v) for v in value)
+        else:
+            out[name] = str(value)
+    return out
+
+
+@functools.cache
+def git_commit() -> str:
+    here = Path(__file__).resolve().parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True,
+                             timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+        return f"{sha}-dirty" if dirty else sha
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+@functools.cache
+def package_versions() -> dict[str, str]:
+    out = {}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "absent"
+    return out
+
+
+def provenance_params() -> dict[str, str]:
+    return {"git_commit": git_commit(), **{f"version.{k}": v for k, v in package_versions().items()}}
+
+
+def log_params(client: Client, run_id: str, params: Mapping[str, Any]) -> None:
+    # MLflow params are immutable: a resumed run re-logs identical values, which is allowed
+    client.log_batch(run_id, params=[Param(k, str(v)[:6000]) for k, v in params.items()])
+
+
+def log_metrics(client: Client, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
+    now = int(time.time() * 1000)
+    client.log_batch(run_id, metrics=[Metric(k, float(v), now, step) for k, v in metrics.items()])
+
+
+def set_tags(client: Client, run_id: str, tags: Mapping[str, Any]) -> None:
+    client.log_batch(run_id, tags=[RunTag(k, str(v)[:5000]) for k, v in tags.items()])
+
+
+class MetricBuffer:
+    """Collects (step, {name: value}) and writes them in one log_batch per flush."""
+
+    def __init__(self, client: Client, run_id: str, max_pending: int = 2000):
+        self.client, self.run_id, self.max_pending = client, run_id, max_pending
+        self.pending: list[Metric] = []
+
+    def add(self, step: int, values: Mapping[str, float]) -> None:
+        now = int(time.time() * 1000)
+        self.pending += [Metric(k, float(v), now, int(step)) for k, v in values.items()]
+        if len(self.pending) >= self.max_pending:
+            self.flush()
+
+    def extend(self, items: Iterable[tuple[int, Mapping[str, float]]]) -> None:
+        for step, values in items:
+            self.add(step, values)
+
+    def flush(self) -> None:
+        if self.pending:
+            self.client.log_batch(self.run_id, metrics=self.pending)
+            self.pending = []
+
+
+def runs_page_url(experiment_id: str, host: str = "127.0.0.1", port: int = 5000) -> str:
+    return f"http://{host}:{port}/#/experiments/{experiment_id}/runs"

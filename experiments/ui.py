@@ -1,0 +1,49 @@
+"""`python -m experiments ui`: the MLflow UI over the study store, with the runs-page links
+printed first (MLflow 3 opens an experiment on its GenAI overview, not on the runs)."""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+
+from experiments.tracking import runs_page_url, sqlite_path, tracking_uri
+
+log = logging.getLogger(__name__)
+KINDS = ("ablation", "sweep", "smoothing", "idm")
+
+
+def experiment_links(uri: str, host: str, port: int) -> list[str]:
+    """Links to the runs page of every study-kind experiment already in the store (read only:
+    a missing sqlite file is not created here)."""
+    db = sqlite_path(uri)
+    if db is not None and not db.exists():
+        return []
+    from experiments.tracking import Client
+
+    client = Client(uri)
+    links = []
+    for kind in KINDS:
+        exp = client.get_experiment_by_name(kind)
+        if exp is not None:
+            links.append(f"{kind}: {runs_page_url(exp.experiment_id, host, port)}")
+    return links
+
+
+def serve(host: str = "127.0.0.1", port: int = 5000) -> int:
+    uri = tracking_uri()
+    if not uri.startswith(("sqlite:", "postgresql", "mysql", "mssql", "file:")):
+        print(f"MLFLOW_TRACKING_URI={uri} is a tracking server already; open it in a browser.")
+        return 0
+    links = experiment_links(uri, host, port)
+    print(f"MLflow UI over {uri}")
+    for line in links or [f"no studies yet; after `nox -s ablation` see {runs_page_url('<id>', host, port)}"]:
+        print(f"  {line}", flush=True)
+    cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", host, "--port", str(port)]
+    db = sqlite_path(uri)
+    if db is not None:  # new experiments created through the UI keep artifacts beside the db
+        cmd += ["--artifacts-destination", str(db.parent / "mlartifacts")]
+    try:
+        return subprocess.call(cmd)
+    except KeyboardInterrupt:
+        return 0

@@ -1,0 +1,151 @@
+"""One ablation cell in one process: train (resuming from the run's checkpoint artifact if
+there is one), evaluate on every task the model serves, log everything to the cell's MLflow
+child run through MlflowClient. Runs in the main process (1 worker) or in a spawned worker."""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import tempfile
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from experiments.cells import Cell
+from experiments.tracking import Client, MetricBuffer, flatten, log_metrics, log_params, provenance_params, set_tags
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "model.pt"
+CHECKPOINT_DIR = "checkpoint"
+
+
+@dataclass
+class CellResult:
+    key: str
+    run_id: str
+    status: str  # FINISHED | FAILED
+    error: str = ""
+    metrics: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+    resumed_from: int = 0
+
+
+def seed_everything(seed: int) -> None:
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def fetch_checkpoint(client: Client, run_id: str, dst: Path) -> Path | None:
+    """Download the run's last checkpoint artifact, if it has one."""
+    names = {Path(f.path).name for f in client.list_artifacts(run_id, CHECKPOINT_DIR)}
+    if CHECKPOINT_NAME not in names:
+        return None
+    local = client.download_artifacts(run_id, f"{CHECKPOINT_DIR}/{CHECKPOINT_NAME}", str(dst))
+    return Path(local)
+
+
+def cell_params(cell: Cell) -> dict[str, str]:
+    return {**flatten(cell.resolved), "profile": cell.profile, "study_name": cell.study_name,
+            **provenance_params()}
+
+
+def run_cell(cell_dict: dict[str, Any], uri: str, run_id: str, progress: bool = False,
+             log_level: int = logging.INFO) -> CellResult:
+    """Entry point for worker processes (arguments are plain data so they pickle under spawn)."""
+    logging.basicConfig(level=log_level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
+    cell = Cell.from_dict(cell_dict)
+    client = Client(uri)
+    start = time.perf_counter()
+    resumed_from = 0
+    try:
+        client.update_run(run_id, status="RUNNING")
+        log_params(client, run_id, cell_params(cell))
+        with tempfile.TemporaryDirectory(prefix="acrmdn-cell-") as tmp:
+            work = Path(tmp)
+            metrics, resumed_from = _train_and_evaluate(cell, client, run_id, work, progress)
+        set_tags(client, run_id, {"error": ""})
+        client.set_terminated(run_id, "FINISHED")
+        return CellResult(cell.key, run_id, "FINISHED", metrics=metrics, seconds=time.perf_counter() - start,
+                          resumed_from=resumed_from)
+    except Exception as exc:
+        text = f"{type(exc).__name__}: {exc}"
+        log.error("cell %s failed: %s", cell.key, text)
+        try:
+            set_tags(client, run_id, {"error": text, "mlflow.note.content":
+                                      f"FAILED: {text}\n\n```\n{traceback.format_exc()[-4000:]}\n```"})
+            client.set_terminated(run_id, "FAILED")
+        except Exception:  # the store itself is unreachable: the summary still reports the failure
+            log.exception("could not mark run %s FAILED", run_id)
+        return CellResult(cell.key, run_id, "FAILED", error=text.splitlines()[0][:500],
+                          seconds=time.perf_counter() - start, resumed_from=resumed_from)
+
+
+def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, progress: bool
+                        ) -> tuple[dict[str, float], int]:
+    from envs.datasets import load_demos
+    from envs.tasks import get_task
+    from stm.checkpoint import load_checkpoint
+    from stm.config import ModelConfig, TrainConfig
+    from stm.train import train
+
+    from experiments.evaluation import evaluate_model, rollout_figure
+
+    config_file = work / "config" / "config.json"
+    config_file.parent.mkdir(parents=True)
+    config_file.write_text(json.dumps(cell.resolved, indent=2, sort_keys=True))
+    client.log_artifact(run_id, str(config_file), "config")
+
+    ckpt_dir = work / "ckpt"
+    ckpt_dir.mkdir()
+    ckpt_path = ckpt_dir / CHECKPOINT_NAME
+    resumed_from = 0
+    fetched = fetch_checkpoint(client, run_id, work / "download")
+    if fetched is not None:
+        fetched.replace(ckpt_path)
+        resumed_from = int(load_checkpoint(ckpt_path)["iteration"])
+        log.info("cell %s resumes from its checkpoint at iteration %d", cell.key, resumed_from)
+        set_tags(client, run_id, {"resumed_from_iteration": resumed_from})
+
+    task = get_task(cell.task)
+    demos = load_demos(task, seed=cell.dataset_seed)
+    model_cfg = ModelConfig.from_dict(cell.model)
+    train_cfg = TrainConfig.from_dict(cell.train)
+    seed_everything(cell.seed)
+
+    buffer = MetricBuffer(client, run_id)
+
+    def on_checkpoint(path: Path, iteration: int) -> None:
+        # metrics first, then the checkpoint: a resumed run never re-logs a step it already has
+        buffer.flush()
+        client.log_artifact(run_id, str(path), CHECKPOINT_DIR)
+        set_tags(client, run_id, {"checkpoint_iteration": iteration})
+
+    def on_validation(iteration: int, value: float) -> bool:
+        buffer.add(iteration, {"val/metric": value})
+        return False
+
+    result = train(model_cfg, train_cfg, task, demos, checkpoint_path=ckpt_path, resume=True,
+                   on_metrics=buffer.add, on_checkpoint=on_checkpoint, on_validation=on_validation,
+                   progress=progress)
+    buffer.flush()
+    log_metrics(client, run_id, {"time/train_seconds": result.seconds, "train/iterations": result.iterations})
+
+    metrics, details = evaluate_model(result.model, list(cell.eval_tasks), cell.eval, seed=cell.seed,
+                                      phi_mode=train_cfg.phi_mode)
+    metrics["time/train_seconds"] = result.seconds
+    log_metrics(client, run_id, metrics)
+    n_fig = int(cell.eval.get("figures", 0))
+    if n_fig:
+        fig_dir = work / "figures"
+        for d in details:
+            rollout_figure(d, fig_dir / f"{d.task}_rollouts.png", n_fig)
+        client.log_artifacts(run_id, str(fig_dir), "figures")
+    return metrics, resumed_from
