@@ -1,0 +1,138 @@
+"""Circle drawing: the tool tip draws one full circle of radius r (psi = r) in a fixed
+horizontal plane; phi = tip position.
+
+Documented choices (base frame; the table top is at z = -0.15):
+- centre CENTRE = (0.60, 0.16, 0.00): 15 cm above the table, in line with the neutral tip;
+  plane z = 0.00 (horizontal), counter-clockwise seen from above.
+- start on the circle at angle 0 (CENTRE + (r, 0, 0)) with the tool pointing down, the
+  configuration solved by IK from NEUTRAL_Q; the angle follows a minimum-jerk profile
+  from 0 to 2 pi over STEPS = 100 steps of STEP_SECONDS = 0.1 s (10 s per circle).
+- demonstrations: 10 radii evenly spaced from 5 to 20 cm.
+- metrics (`circle_metrics`, any tip path): radial error = distance from the tip to the
+  circle (in-plane radius error and height error combined); radial_rmse (m),
+  max_radial_error_pct (max radial error as % of r), closure (m, end to start),
+  turns (unwrapped angle swept about the centre / 2 pi).
+- success: max radial error < 10% of r and at least 0.95 of a turn drawn (a path that
+  stays at the start point has no radial error but draws nothing).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from envs.robot import LIMITS, NEUTRAL_Q
+from envs.tasks.base import Demos, Episode, StateLayout, Task, register
+from envs.tasks.expert import check_trajectory, min_jerk, physics_scene, solve_tool_down_path, velocity_ratio
+
+log = logging.getLogger(__name__)
+
+CENTRE = (0.60, 0.16, 0.00)
+STEPS = 100
+STEP_SECONDS = 0.1
+DEMO_RADII = tuple(np.round(np.linspace(0.05, 0.20, 10), 6))
+EVAL_RADII = (0.05, 0.10, 0.15, 0.075, 0.125)  # seen radii of the paper, then unseen ones
+MAX_ERROR_PCT = 10.0
+MIN_TURNS = 0.95
+
+
+def circle_path(radius: float, steps: int = STEPS, centre=CENTRE) -> np.ndarray:
+    """The demonstrated tip path (steps+1, 3): one counter-clockwise turn from angle 0."""
+    theta = 2 * np.pi * min_jerk(steps)
+    c = np.asarray(centre, dtype=float)
+    return c + radius * np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=-1)
+
+
+def circle_metrics(tip: np.ndarray, radius: float, centre=CENTRE) -> dict[str, float]:
+    """Metrics of a tip path (T+1, 3) against the circle of `radius` about `centre` in the
+    horizontal plane through it. Pure numpy; usable on measured or predicted paths."""
+    tip = np.asarray(tip, dtype=float)
+    rel = tip - np.asarray(centre, dtype=float)
+    rho = np.hypot(rel[:, 0], rel[:, 1])
+    err = np.hypot(rho - radius, rel[:, 2])
+    angle = np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
+    turns = float(abs(angle[-1] - angle[0]) / (2 * np.pi))
+    max_pct = float(100.0 * err.max() / radius)
+    return {
+        "radial_rmse": float(np.sqrt(np.mean(err**2))),
+        "max_radial_error_pct": max_pct,
+        "closure": float(np.linalg.norm(tip[-1] - tip[0])),
+        "turns": turns,
+        "success": float(max_pct < MAX_ERROR_PCT and turns >= MIN_TURNS),
+    }
+
+
+@register
+class Circle(Task):
+    name = "circle"
+    model_task = "circle"
+    step_seconds = STEP_SECONDS
+    layout = StateLayout(phi_dim=3, psi_dim=1, phi_names=("tip_x", "tip_y", "tip_z"), psi_names=("radius",))
+
+    def __init__(self, radii: tuple[float, ...] = DEMO_RADII, steps: int = STEPS):
+        if not radii or min(radii) <= 0:
+            raise ValueError(f"radii must be positive, got {radii}")
+        self.radii = tuple(float(r) for r in radii)
+        self.steps = int(steps)
+
+    def config(self) -> dict[str, Any]:
+        return {"task": self.name, "radii": self.radii, "steps": self.steps, "centre": CENTRE,
+                "step_seconds": self.step_seconds, "profile": "min-jerk angle, tool down, start at angle 0"}
+
+    def phi(self, tip_pos, psi):
+        return tip_pos
+
+    def expert(self, radii) -> tuple[np.ndarray, np.ndarray]:
+        """Expert joint paths (B, steps+1, 7) for radii (B,), and whether each is valid
+        (IK converged, within joint limits, joint speeds under the URDF limits)."""
+        paths = np.stack([circle_path(r, self.steps) for r in radii])
+        q_start = np.repeat(NEUTRAL_Q[None], len(radii), axis=0)
+        # first solve the start point from the neutral pose, then the circle from there
+        q0, ok0, _ = solve_tool_down_path(paths[:, :1], q_start)
+        q, ok, _ = solve_tool_down_path(paths[:, 1:], q0[:, 0])
+        q = np.concatenate([q0, q], axis=1)
+        ok = ok0 & ok & LIMITS.contains(q).all(axis=1) & (velocity_ratio(q, self.step_seconds) <= 1.0)
+        return q, ok
+
+    def demos(self, seed: int = 0) -> Demos:
+        """One demonstration per radius; the expert is deterministic, so `seed` does not
+        change it. A radius whose expert fails cannot be resampled: that raises."""
+        q, ok = self.expert(self.radii)
+        rejections = {"ik": int((~ok).sum()), "physics": 0}
+        for i, r in enumerate(self.radii):
+            if ok[i] and not self.play_metrics(q[i], r)["success"]:
+                rejections["physics"] += 1
+                ok[i] = False
+        if not ok.all():
+            bad = [r for r, good in zip(self.radii, ok, strict=True) if not good]
+            raise RuntimeError(f"circle expert fails for radii {bad}: {rejections}")
+        n = len(self.radii)
+        psi = np.broadcast_to(np.array(self.radii)[:, None, None], (n, self.steps + 1, 1)).copy()
+        meta = {"rejections": rejections, "expert_success": 1.0, "replayed_in_physics": n}
+        return Demos(q=q, grip=np.zeros((n, self.steps + 1)), psi=psi,
+                     lengths=np.full(n, self.steps), meta=meta)
+
+    def play_metrics(self, q: np.ndarray, radius: float) -> dict[str, float]:
+        """Play q (T+1, 7) in physics and measure the drawn circle."""
+        tip = physics_scene().play(q, None, self.step_seconds).tip
+        return circle_metrics(tip, radius)
+
+    def episodes(self, n: int, seed: int, radii: tuple[float, ...] = EVAL_RADII) -> list[Episode]:
+        """n episodes cycling through `radii` (default 5, 10, 15 cm and the unseen 7.5,
+        12.5 cm), each starting at the expert's start configuration for its radius.
+        Circle episodes are deterministic; `seed` is accepted for the common interface."""
+        chosen = [float(radii[i % len(radii)]) for i in range(n)]
+        starts = {r: q0 for r, q0 in zip(sorted(set(chosen)), self._starts(sorted(set(chosen))), strict=True)}
+        return [Episode(q0=starts[r], psi=np.full((self.steps + 1, 1), r), horizon=self.steps,
+                        info={"radius": r}) for r in chosen]
+
+    def _starts(self, radii) -> np.ndarray:
+        paths = np.stack([circle_path(r, self.steps)[:1] for r in radii])
+        q0, _, _ = solve_tool_down_path(paths, np.repeat(NEUTRAL_Q[None], len(radii), axis=0))
+        return q0[:, 0]
+
+    def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
+        q = check_trajectory(q)
+        return self.play_metrics(q, float(episode.info["radius"]))
