@@ -5,6 +5,7 @@ optional gripper channel closes halfway. Evaluation plays the trajectory in pybu
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from envs.kinematics import tip_position_np
@@ -59,3 +60,12 @@ class ToyReach(Task):
 
     def config(self) -> dict:
         return {"n_demos": self.n_demos, "min_steps": self.min_steps, "max_steps": self.max_steps}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def single_torch_thread():
+    """Tiny models run fastest on one thread, and much faster on a contended machine; restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -1,6 +1,6 @@
 import pytest
 import torch
-from stm_toytask import ToyReach
+from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import default_kinematics
 from stm.config import ModelConfig, TrainConfig

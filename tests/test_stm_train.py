@@ -2,7 +2,7 @@ import math
 
 import pytest
 import torch
-from stm_toytask import ToyReach
+from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import default_kinematics
 from stm.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, load_model, save_checkpoint

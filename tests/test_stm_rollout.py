@@ -1,0 +1,73 @@
+import numpy as np
+import pytest
+import torch
+from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
+
+from envs.kinematics import tip_position_np
+from envs.tasks.base import Episode
+from stm.config import ModelConfig, TrainConfig
+from stm.rollout import evaluate, generate
+from stm.train import demo_episodes, train
+
+
+@pytest.fixture(scope="module")
+def overfit():
+    """An ac-lstm-mdn trained to overfit a single demonstration (with a gripper channel)."""
+    task = ToyReach(n_demos=1, min_steps=12, max_steps=12, gripper=True)
+    demos = task.demos(4)
+    cfg = TrainConfig(iters=150, batch_size=1, lr=1e-2, u=2, v=2, log_every=0)
+    res = train(ModelConfig(hidden_size=32, num_layers=2, mixtures=2), cfg, task, demos)
+    return task, demos, res.model
+
+
+def test_rollout_of_an_overfit_model_reproduces_its_demo(overfit):
+    task, demos, model = overfit
+    episodes = demo_episodes(demos, 1)
+    ro = generate(model, task, episodes)
+    L = int(demos.lengths[0])
+    assert ro.q.shape == (1, L + 1, 7) and ro.grip.shape == (1, L + 1) and ro.seconds > 0
+    tip_err = np.linalg.norm(tip_position_np(ro.q[0]) - tip_position_np(demos.q[0, : L + 1]), axis=-1)
+    assert tip_err.max() < 0.01, tip_err  # within 1 cm along the whole path
+    assert np.array_equal(ro.grip[0, 1:], demos.grip[0, 1: L + 1])  # the gripper closes on the same step
+
+
+def test_batched_episodes_of_different_horizons_match_single_runs(overfit):
+    task, demos, model = overfit
+    base = demo_episodes(demos, 1)[0]
+    eps = [Episode(q0=base.q0, psi=base.psi[:6], horizon=5), base,
+           Episode(q0=base.q0 + 0.05, psi=base.psi, horizon=12)]
+    ro = generate(model, task, eps)
+    assert ro.q.shape == (3, 13, 7) and ro.horizons.tolist() == [5, 12, 12]
+    assert np.all(ro.q[0, 6:] == ro.q[0, 5])  # padded with the last valid row
+    for i, ep in enumerate(eps):
+        single = generate(model, task, [ep])
+        np.testing.assert_allclose(ro.q[i, : ep.horizon + 1], single.q[0], atol=1e-5)
+
+
+def test_goal_switch_changes_the_trajectory_only_after_the_switch(overfit):
+    task, demos, model = overfit
+    ep = demo_episodes(demos, 1)[0]
+    psi = ep.psi.copy()
+    psi[6:] += np.array([0.0, 0.15, 0.0])
+    switched = Episode(q0=ep.q0, psi=psi, horizon=ep.horizon)
+    ro = generate(model, task, [ep, switched])
+    np.testing.assert_allclose(ro.q[0, :7], ro.q[1, :7], atol=1e-6)  # step 7 is the first predicted from new psi
+    assert np.abs(ro.q[0, 8:] - ro.q[1, 8:]).max() > 1e-3
+
+
+def test_sampling_is_seeded_and_evaluate_runs_physics(overfit):
+    task, demos, model = overfit
+    eps = task.episodes(2, seed=0)
+    a = generate(model, task, eps, feedback="sample", seed=1)
+    b = generate(model, task, eps, feedback="sample", seed=1)
+    assert np.array_equal(a.q, b.q)
+    results = evaluate(task, a, eps)
+    assert len(results) == 2 and all(r["success"] in (0.0, 1.0) and r["final_distance"] >= 0 for r in results)
+    with pytest.raises(ValueError, match="rollouts for"):
+        evaluate(task, a, eps[:1])
+
+
+def test_rollout_rejects_a_task_of_another_state_size(overfit):
+    _, _, model = overfit
+    with pytest.raises(ValueError, match="state size"):
+        generate(model, ToyReach(gripper=False), ToyReach(gripper=False).episodes(1, 0))
