@@ -1,0 +1,57 @@
+"""`python -m reports [--experiment NAME] [--study RUN_ID] [--out DIR]`: regenerate every table and
+figure from the MLflow store alone (default: the latest study of each kind)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+log = logging.getLogger("reports")
+
+DEFAULT_OUT = Path("reports/out")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m reports", description=__doc__.split("\n\n")[0])
+    p.add_argument("--experiment", help="only the latest study of this experiment (study kind), e.g. ablation")
+    p.add_argument("--study", help="a parent run id (or study_name) instead of the latest study")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output root; reports go to OUT/<study>/")
+    p.add_argument("--tracking-uri", help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or "
+                                          "sqlite:///mlflow.db in the working directory)")
+    p.add_argument("--no-log-artifacts", action="store_true", help="do not log the report to the parent run")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    from reports.build import build_report
+    from reports.html import root_index
+    from reports.store import Store, StoreError
+
+    start = time.perf_counter()
+    try:
+        store = Store(args.tracking_uri)
+        studies = store.studies(args.experiment, args.study)
+    except StoreError as exc:
+        print(f"reports: error: {exc}", file=sys.stderr)
+        return 2
+    built = []
+    for study in studies:
+        report = build_report(study, args.out, log_artifacts=not args.no_log_artifacts)
+        built.append((study, report.index))
+        gaps = f", {len(report.gaps)} gap(s)" if report.gaps else ""
+        print(f"{study.kind} study {study.name!r} ({study.profile}): {report.index}{gaps} "
+              f"[{report.seconds:.1f} s]")
+    root = root_index(args.out, built)
+    print(f"index: {root} [{time.perf_counter() - start:.1f} s total]")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""Build one study's report: tables + figures into <out>/<study>/, index.html, artifacts of the parent run."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from reports import figures, tables
+from reports.figures import FigureResult
+from reports.html import study_index
+from reports.store import Study
+from reports.tables import Table
+
+log = logging.getLogger(__name__)
+
+ARTIFACT_PATH = "report"  # folder of the parent run's artifacts that holds the report
+OUTPUT_SUFFIXES = {".png", ".pdf", ".md", ".html", ".tex", ".csv"}
+
+
+@dataclass
+class Report:
+    study: Study
+    folder: Path
+    index: Path
+    tables: list[Table]
+    figures: list[FigureResult]
+    seconds: float
+
+    @property
+    def gaps(self) -> list[str]:
+        return [f"{f.name}: {f.gap}" for f in self.figures if f.gap]
+
+
+def _ablation_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureResult]]:
+    success = tables.success_summary(study)
+    circle = tables.circle_summary(study)
+    train = tables.train_time_summary(study)
+    tabs = [tables.success_table(success, study), tables.circle_table(circle, study),
+            tables.train_time_table(train, study), tables.generic_metrics_table(study)]
+    figs = [figures.success_bars(success, study, folder), figures.circles(study, folder),
+            figures.compute_time(study, folder), figures.train_time(train, study, folder),
+            figures.training_curves(study, folder), figures.tip_paths(study, folder),
+            figures.changing_goal(study, folder)]
+    return tabs, figs
+
+
+def _sweep_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureResult]]:
+    tabs = [tables.generic_metrics_table(study)]
+    figs = [figures.sweep_history(study, folder), figures.sweep_params(study, folder),
+            figures.sweep_intermediate(study, folder), figures.training_curves(study, folder)]
+    return tabs, figs
+
+
+def _clear(folder: Path) -> None:
+    """Remove the outputs of an earlier build (only our own file types, only this folder), so that a
+    figure that became a gap does not linger."""
+    if folder.is_dir():
+        for p in folder.iterdir():
+            if p.is_file() and p.suffix in OUTPUT_SUFFIXES:
+                p.unlink()
+
+
+def build_report(study: Study, out_root: Path, log_artifacts: bool = True) -> Report:
+    start = time.perf_counter()
+    folder = out_root / study.slug
+    _clear(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    parts = _sweep_parts if study.kind == "sweep" else _ablation_parts
+    tabs, figs = parts(study, folder)
+    for t in tabs:
+        t.write(folder)
+    seconds = time.perf_counter() - start
+    index = study_index(study, folder, tabs, figs, seconds)
+    if log_artifacts:
+        try:
+            study.client.log_artifacts(study.run_id, str(folder), ARTIFACT_PATH)
+        except Exception as exc:  # noqa: BLE001 - the files on disk are the report; the upload is a copy
+            log.warning("could not log the report as artifacts of run %s: %s", study.run_id, exc)
+    return Report(study, folder, index, tabs, figs, time.perf_counter() - start)

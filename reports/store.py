@@ -1,0 +1,326 @@
+"""Load studies from the MLflow tracking store into tidy pandas DataFrames.
+
+Artifact contract (what reports reads; the experiments side writes it; also in /work/notes/artifacts.md)
+-----------------------------------------------------------------------------------------------------
+Runs: one experiment per study kind ("ablation", "sweep", ...). Parent run = no `mlflow.parentRunId`
+tag; tags `kind`, `profile`, `study_name`. Child run: tag `mlflow.parentRunId`, tags `task` (training
+task), `variant`, `seed`, `profile`, `config_hash`; status FAILED/KILLED = a failed cell (a gap).
+Child metrics, per evaluated task E: `E/success_rate` (0..1), `E/success_ci_low`, `E/success_ci_high`,
+`E/n_rollouts`, `E/final_distance_mean` (m); circle per radius R cm (`f"{R:g}"`):
+`circle/r{R}/radial_rmse` (m), `circle/r{R}/max_radial_error_pct` (% of r); `train/loss`
+(step = iteration), `val/metric`; `time/train_seconds`, `time/rollout_seconds`, `time/physics_seconds`,
+`time/generation_seconds_per_traj`, `time/generation_batched_seconds_per_traj`,
+`time/ik_seconds_per_traj`, `time/ik_batched_seconds_per_traj` (seconds per trajectory).
+Child artifact `rollouts/<E>.npz` (np.savez_compressed; metres, robot base frame), B episodes, horizon H:
+    tip (B, H+1, 3) REQUIRED measured tool-tip path from the pybullet playback;
+    optional per episode: success (B,) 0/1 or NaN, final_distance (B,), goal (B, 3), new_goal (B, 3)
+    (NaN if none), switch_step (B,) int (-1 if none), radius (B,) m, center (B, 3) m,
+    ideal_tip (B, K, 3) ideal path (circle), expert_tip (B, Te+1, 3) the IK expert's direct path
+    (changing goal; NaN-padded rows at the end).
+Child artifact `rollouts/ik_timing.json`: {E: {"n_trajectories", "batch_size", "horizon",
+    "stm_seconds_per_traj", "stm_batched_seconds_per_traj", "ik_seconds_per_traj",
+    "ik_batched_seconds_per_traj"}}; absent -> the `time/*_seconds_per_traj` metrics of the run.
+Sweep children: tags `trial`, `state` (COMPLETE/PRUNED/FAIL), sampled hyperparameters as params,
+metric `objective`, intermediate `val/metric` (step = iteration); parent tag/param `direction`.
+Anything missing is reported as a gap by the consumer, never a crash.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
+PARENT_TAG = "mlflow.parentRunId"
+FAILED_STATUSES = ("FAILED", "KILLED")
+# Eval task -> training task, used only when neither the store nor the envs registry says.
+FALLBACK_MODEL_TASK = {
+    "reacher": "reacher", "reacher-changing-goal": "reacher",
+    "pick-place": "pick-place", "stack": "pick-place", "pick-place-changing-goal": "pick-place",
+    "circle": "circle",
+}
+EVAL_METRIC = re.compile(r"^metrics\.(?P<task>[^/]+)/(?P<name>success_rate|success_ci_low|success_ci_high|"
+                         r"n_rollouts|final_distance_mean)$")
+CIRCLE_METRIC = re.compile(r"^metrics\.circle/r(?P<r>\d+(?:\.\d+)?)/(?P<name>radial_rmse|max_radial_error_pct)$")
+
+
+class StoreError(Exception):
+    """A problem with the store or the selection, reported as one line (exit code 2)."""
+
+
+def tracking_uri() -> str:
+    return os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_TRACKING_URI
+
+
+def _sqlite_path(uri: str) -> Path | None:
+    if not uri.startswith("sqlite:///"):
+        return None
+    return Path(uri[len("sqlite:///"):])
+
+
+@dataclass
+class Study:
+    """One study: its parent run and its children as a tidy frame (one row per child run)."""
+
+    experiment: str
+    parent: dict[str, Any]
+    children: pd.DataFrame
+    client: Any = field(repr=False)
+    _cache_dir: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="reports-")), repr=False)
+    _artifacts: dict[str, set[str]] = field(default_factory=dict, repr=False)
+    _frames: dict[str, pd.DataFrame] = field(default_factory=dict, repr=False)
+
+    @property
+    def run_id(self) -> str:
+        return self.parent["run_id"]
+
+    @property
+    def kind(self) -> str:
+        return self.parent.get("tags.kind") or self.experiment
+
+    @property
+    def name(self) -> str:
+        return self.parent.get("tags.study_name") or self.run_id
+
+    @property
+    def profile(self) -> str:
+        return self.parent.get("tags.profile") or "?"
+
+    @property
+    def slug(self) -> str:
+        """Folder name for this study's outputs."""
+        return re.sub(r"[^A-Za-z0-9_.-]+", "_", self.name)
+
+    @property
+    def ok(self) -> pd.DataFrame:
+        """Children that finished (not failed, not running)."""
+        return self.children[self.children["status"] == "FINISHED"]
+
+    @property
+    def variants(self) -> list[str]:
+        return order_variants(self.children["variant"].dropna().unique())
+
+    @property
+    def seeds(self) -> list[int]:
+        return sorted(int(s) for s in self.children["seed"].dropna().unique())
+
+    # ---------------------------------------------------------------- metrics
+    def metric_history(self, run_id: str, key: str) -> pd.DataFrame:
+        """(step, value) of one metric of one run, sorted by step; empty if never logged."""
+        hist = self.client.get_metric_history(run_id, key)
+        df = pd.DataFrame({"step": [m.step for m in hist], "value": [m.value for m in hist]})
+        return df.sort_values("step").drop_duplicates("step", keep="last").reset_index(drop=True)
+
+    def eval_metrics(self) -> pd.DataFrame:
+        """Long frame: one row per (child run, evaluated task) with success_rate, success_ci_low,
+        success_ci_high, n_rollouts, final_distance_mean (NaN where not logged)."""
+        if "eval" not in self._frames:
+            self._frames["eval"] = _melt(self.children, EVAL_METRIC, "task", "eval_task")
+        return self._frames["eval"]
+
+    def circle_metrics(self) -> pd.DataFrame:
+        """Long frame: one row per (child run, radius) with radius_cm, radial_rmse, max_radial_error_pct."""
+        if "circle" not in self._frames:
+            df = _melt(self.children, CIRCLE_METRIC, "r", "radius_cm")
+            if not df.empty:
+                df["radius_cm"] = df["radius_cm"].astype(float)
+            self._frames["circle"] = df
+        return self._frames["circle"]
+
+    def model_task_of(self, eval_task: str) -> str:
+        """The training task whose runs evaluate `eval_task`: from the store, else the paper's tasks, else the
+        envs registry (imported only then: it pulls in torch and pybullet)."""
+        em = self.eval_metrics()
+        seen = em.loc[em["eval_task"] == eval_task, "task"].dropna().unique() if not em.empty else []
+        if len(seen):
+            return str(seen[0])
+        if eval_task in FALLBACK_MODEL_TASK:
+            return FALLBACK_MODEL_TASK[eval_task]
+        try:  # reports may read envs constants (dependencies point reports -> envs)
+            from envs.tasks import get_task
+            return get_task(eval_task).model_task
+        except Exception:  # noqa: BLE001 - the registry may not know the task
+            return eval_task
+
+    # -------------------------------------------------------------- artifacts
+    def artifact_paths(self, run_id: str, folder: str = "rollouts") -> set[str]:
+        key = f"{run_id}/{folder}"
+        if key not in self._artifacts:
+            try:
+                self._artifacts[key] = {f.path for f in self.client.list_artifacts(run_id, folder)}
+            except Exception as exc:  # noqa: BLE001 - an unreachable artifact store is a gap, not a crash
+                log.warning("cannot list artifacts of run %s: %s", run_id, exc)
+                self._artifacts[key] = set()
+        return self._artifacts[key]
+
+    def _download(self, run_id: str, path: str) -> Path | None:
+        if path not in self.artifact_paths(run_id, str(Path(path).parent)):
+            return None
+        dst = self._cache_dir / run_id
+        local = dst / path
+        if not local.exists():
+            dst.mkdir(parents=True, exist_ok=True)
+            try:
+                local = Path(self.client.download_artifacts(run_id, path, str(dst)))
+            except Exception as exc:  # noqa: BLE001
+                log.warning("cannot download %s of run %s: %s", path, run_id, exc)
+                return None
+        return local
+
+    def rollouts(self, run_id: str, eval_task: str) -> dict[str, np.ndarray] | None:
+        """Arrays of `rollouts/<eval_task>.npz`, or None when absent or unreadable (a gap)."""
+        local = self._download(run_id, f"rollouts/{eval_task}.npz")
+        if local is None:
+            return None
+        try:
+            with np.load(local, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except Exception as exc:  # noqa: BLE001 - a corrupt artifact is a gap
+            log.warning("unreadable rollouts/%s.npz in run %s: %s", eval_task, run_id, exc)
+            return None
+        tip = arrays.get("tip")
+        if tip is None or tip.ndim != 3 or tip.shape[-1] != 3:
+            log.warning("rollouts/%s.npz of run %s has no tip array of shape (B, H+1, 3)", eval_task, run_id)
+            return None
+        return arrays
+
+    def ik_timing(self, run_id: str) -> dict[str, dict[str, float]] | None:
+        local = self._download(run_id, "rollouts/ik_timing.json")
+        if local is None:
+            return None
+        try:
+            return json.loads(local.read_text())
+        except (OSError, ValueError) as exc:
+            log.warning("unreadable rollouts/ik_timing.json in run %s: %s", run_id, exc)
+            return None
+
+
+VARIANT_ORDER = ("lstm", "ac-lstm", "lstm-mdn", "ac-lstm-mdn")
+
+
+def order_variants(names) -> list[str]:
+    """The paper's order first (Table I), then the others alphabetically."""
+    names = [str(n) for n in names]
+    known = [v for v in VARIANT_ORDER if v in names]
+    return known + sorted(n for n in set(names) if n not in VARIANT_ORDER)
+
+
+def _melt(children: pd.DataFrame, pattern: re.Pattern, group: str, out_col: str) -> pd.DataFrame:
+    """Metric columns matching `pattern` -> one row per (run, group value), one column per metric name."""
+    ids = ["run_id", "status", "task", "variant", "seed"]
+    cols = {c: pattern.match(c) for c in children.columns}
+    cols = {c: m for c, m in cols.items() if m}
+    if not cols or children.empty:
+        return pd.DataFrame(columns=[*ids, out_col])
+    rows = []
+    for key in sorted({m.group(group) for m in cols.values()}):
+        mine = {m.group("name"): c for c, m in cols.items() if m.group(group) == key}
+        part = children[ids].copy()
+        part[out_col] = key
+        for name, col in mine.items():
+            part[name] = children[col].to_numpy()
+        part = part[part[list(mine)].notna().any(axis=1)]
+        rows.append(part)
+    return pd.concat(rows, ignore_index=True)
+
+
+class Store:
+    """Read-only view of a tracking store (never creates one)."""
+
+    def __init__(self, uri: str | None = None):
+        import mlflow
+        from mlflow import MlflowClient
+
+        os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # no bar per small download
+        self.uri = uri or tracking_uri()
+        path = _sqlite_path(self.uri)
+        if path is not None and not path.exists():
+            raise StoreError(f"no MLflow store at {self.uri} (run a study first, or set MLFLOW_TRACKING_URI)")
+        mlflow.set_tracking_uri(self.uri)  # mlflow.search_runs reads the global URI
+        self._mlflow = mlflow
+        self.client = MlflowClient(self.uri)
+
+    def experiments(self) -> dict[str, str]:
+        """name -> id of the experiments that hold at least one parent run."""
+        try:
+            exps = self.client.search_experiments()
+        except Exception as exc:  # noqa: BLE001 - e.g. a file that is not an MLflow database
+            raise StoreError(f"cannot read the MLflow store at {self.uri}: {str(exc).splitlines()[0]}") from None
+        return {e.name: e.experiment_id for e in exps}
+
+    def _runs(self, experiment_ids: list[str], filter_string: str = "") -> pd.DataFrame:
+        df = self._mlflow.search_runs(experiment_ids=experiment_ids, filter_string=filter_string,
+                                      output_format="pandas")
+        return df if isinstance(df, pd.DataFrame) else pd.DataFrame()
+
+    def parents(self, experiment: str | None = None) -> pd.DataFrame:
+        """Parent runs (newest first) of one experiment or of all."""
+        exps = self.experiments()
+        if experiment is not None:
+            if experiment not in exps:
+                known = ", ".join(sorted(exps)) or "none"
+                raise StoreError(f"unknown experiment {experiment!r} in {self.uri} (known: {known})")
+            exps = {experiment: exps[experiment]}
+        if not exps:
+            return pd.DataFrame()
+        df = self._runs(list(exps.values()))
+        if df.empty:
+            return df
+        if f"tags.{PARENT_TAG}" in df.columns:
+            df = df[df[f"tags.{PARENT_TAG}"].isna()]
+        names = {v: k for k, v in exps.items()}
+        df = df.assign(experiment=df["experiment_id"].map(names))
+        return df.sort_values("start_time", ascending=False).reset_index(drop=True)
+
+    def studies(self, experiment: str | None = None, study: str | None = None) -> list[Study]:
+        """The selected studies: `study` (a parent run id or study_name), else the latest parent of
+        `experiment`, else the latest parent of each experiment."""
+        parents = self.parents(experiment)
+        if parents.empty:
+            where = f"experiment {experiment!r}" if experiment else "the store"
+            raise StoreError(f"no studies in {where} at {self.uri}")
+        if study is not None:
+            hit = parents[parents["run_id"] == study]
+            if hit.empty and "tags.study_name" in parents.columns:
+                hit = parents[parents["tags.study_name"] == study].head(1)
+            if hit.empty:
+                raise StoreError(f"unknown study {study!r} (not a parent run id or study_name) in {self.uri}")
+            chosen = hit
+        else:
+            chosen = parents.groupby("experiment", sort=False).head(1)
+        return [self.load(row) for row in chosen.to_dict("records")]
+
+    def load(self, parent: dict[str, Any]) -> Study:
+        children = self._runs([parent["experiment_id"]], f"tags.`{PARENT_TAG}` = '{parent['run_id']}'")
+        return Study(experiment=parent.get("experiment", ""), parent=_clean(parent),
+                     children=_tidy_children(children), client=self.client)
+
+
+def _clean(row: dict[str, Any]) -> dict[str, Any]:
+    return {k: (None if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()}
+
+
+def _tidy_children(df: pd.DataFrame) -> pd.DataFrame:
+    """Identity columns (task, variant, seed, profile, config_hash, trial, state) from the tags; metric
+    and param columns kept under MLflow's names; `failed` marks FAILED/KILLED cells."""
+    if df.empty:
+        df = pd.DataFrame(columns=["run_id", "status", "start_time", "end_time"])
+    df = df.copy()
+    for tag in ("task", "variant", "seed", "profile", "config_hash", "trial", "state"):
+        col = f"tags.{tag}"
+        df[tag] = df[col] if col in df.columns else pd.Series([None] * len(df), index=df.index, dtype=object)
+    df["seed"] = pd.to_numeric(df["seed"], errors="coerce").astype("Int64")
+    df["trial"] = pd.to_numeric(df["trial"], errors="coerce").astype("Int64")
+    df["failed"] = df["status"].isin(FAILED_STATUSES)
+    return df.sort_values(["task", "variant", "seed"], na_position="last").reset_index(drop=True)

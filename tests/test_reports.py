@@ -1,0 +1,225 @@
+"""Reports from a real MLflow sqlite store built here per the logging schema (notes/api.md + artifacts.md)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mlflow import MlflowClient
+from mlflow.entities import Metric, Param
+from scipy.stats import binomtest
+
+from reports.__main__ import main
+from reports.build import build_report
+from reports.stats import wilson_interval
+from reports.store import Store
+from reports.tables import success_summary
+
+VARIANTS = ("lstm", "ac-lstm-mdn")
+SEEDS = (0, 1)
+N_ROLLOUTS = 10
+# (variant, seed) -> success rate logged for eval task "reacher" / "reacher-changing-goal"
+REACHER = {("lstm", 0): 0.6, ("lstm", 1): 0.8, ("ac-lstm-mdn", 0): 0.9, ("ac-lstm-mdn", 1): 1.0}
+CHANGING = {("lstm", 0): 0.3, ("lstm", 1): 0.5, ("ac-lstm-mdn", 0): 0.7, ("ac-lstm-mdn", 1): 0.0}
+FAILED = ("ac-lstm-mdn", 1)  # this reacher cell's run FAILED (its logged metrics must not count)
+RMSE = {("lstm", 5): 0.02, ("lstm", 10): 0.03, ("ac-lstm-mdn", 5): 0.01, ("ac-lstm-mdn", 10): 0.015}
+
+
+def _rollouts(rng: np.random.Generator, task: str, b: int = 3, h: int = 12) -> dict[str, np.ndarray]:
+    t = np.linspace(0, 1, h + 1)[None, :, None]
+    start, goal = rng.uniform(-0.3, 0.3, (b, 1, 3)), rng.uniform(-0.3, 0.3, (b, 3))
+    arrays = {"tip": start + t * (goal[:, None] - start), "goal": goal, "success": np.ones(b),
+              "final_distance": np.full(b, 0.01), "switch_step": np.full(b, -1),
+              "new_goal": np.full((b, 3), np.nan), "radius": np.full(b, np.nan), "center": np.full((b, 3), np.nan)}
+    if task.endswith("changing-goal"):
+        arrays["new_goal"] = goal + 0.1
+        arrays["switch_step"] = np.full(b, h // 2)
+        arrays["expert_tip"] = start + t * (arrays["new_goal"][:, None] - start)
+    if task == "circle":
+        radius = np.array([0.05, 0.10, 0.05])[:b]
+        ang = np.linspace(0, 2 * np.pi, h + 1)
+        center = np.tile([0.6, 0.0, 0.1], (b, 1))
+        arrays["tip"] = center[:, None] + radius[:, None, None] * 1.05 * np.stack(
+            [np.cos(ang), np.sin(ang), np.zeros_like(ang)], -1)[None]
+        arrays.update(radius=radius, center=center, goal=np.full((b, 3), np.nan))
+    return arrays
+
+
+def _child(client, exp, parent, task, variant, seed, metrics, status="FINISHED", artifacts=None, tmp=None,
+           params=None, extra_tags=None):
+    tags = {"mlflow.parentRunId": parent, "task": task, "variant": variant, "seed": str(seed), "profile": "smoke",
+            "config_hash": f"h{task}{variant}{seed}", **(extra_tags or {})}
+    run = client.create_run(exp, tags=tags)
+    rid = run.info.run_id
+    batch = [Metric(k, float(v), 0, 0) for k, v in metrics.items()]
+    batch += [Metric("train/loss", 2.0 / (i + 1) + 0.1 * seed, 0, i * 10) for i in range(15)]
+    client.log_batch(rid, metrics=batch, params=[Param(k, str(v)) for k, v in (params or {}).items()])
+    for name, content in (artifacts or {}).items():
+        path = Path(tmp) / rid / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if name.endswith(".npz"):
+            np.savez_compressed(path, **content)
+        else:
+            path.write_text(json.dumps(content))
+        client.log_artifact(rid, str(path), "rollouts")
+    client.set_terminated(rid, status)
+    return rid
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("store")
+    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    client = MlflowClient(uri)
+    exp = client.create_experiment("ablation", artifact_location=(tmp / "artifacts").as_uri())
+    # An older study without any artifacts (must still build, with gaps).
+    old = client.create_run(exp, tags={"kind": "ablation", "profile": "smoke", "study_name": "old-study"})
+    _child(client, exp, old.info.run_id, "reacher", "lstm", 0,
+           {"reacher/success_rate": 0.5, "reacher/n_rollouts": 4})
+    client.set_terminated(old.info.run_id)
+    parent = client.create_run(exp, tags={"kind": "ablation", "profile": "smoke", "study_name": "test-study"})
+    pid = parent.info.run_id
+    rng = np.random.default_rng(0)
+    ids = {}
+    for v in VARIANTS:
+        for s in SEEDS:
+            metrics = {"reacher/success_rate": REACHER[v, s], "reacher/n_rollouts": N_ROLLOUTS,
+                       "reacher-changing-goal/success_rate": CHANGING[v, s],
+                       "reacher-changing-goal/n_rollouts": N_ROLLOUTS,
+                       "time/train_seconds": 10.0 + s, "time/generation_seconds_per_traj": 0.01,
+                       "time/ik_seconds_per_traj": 0.03}
+            arts = {}
+            if s == 0:
+                arts = {f"{t}.npz": _rollouts(rng, t) for t in ("reacher", "reacher-changing-goal")}
+            ids[v, s] = _child(client, exp, pid, "reacher", v, s, metrics,
+                               status="FAILED" if (v, s) == FAILED else "FINISHED", artifacts=arts, tmp=tmp)
+        circle = {f"circle/r{r:g}/radial_rmse": RMSE[v, r] for r in (5, 10)}
+        circle |= {f"circle/r{r:g}/max_radial_error_pct": 100 * RMSE[v, r] / (r / 100) for r in (5, 10)}
+        timing = {"circle": {"n_trajectories": 3, "batch_size": 3, "horizon": 12, "stm_seconds_per_traj": 0.02,
+                             "stm_batched_seconds_per_traj": 0.004, "ik_seconds_per_traj": 0.05,
+                             "ik_batched_seconds_per_traj": 0.01}}
+        _child(client, exp, pid, "circle", v, 0, circle | {"time/train_seconds": 5.0},
+               artifacts={"circle.npz": _rollouts(rng, "circle"), "ik_timing.json": timing}, tmp=tmp)
+    client.set_terminated(pid)
+    # A sweep study: 4 trials, one pruned.
+    sexp = client.create_experiment("sweep", artifact_location=(tmp / "sweep-artifacts").as_uri())
+    sp = client.create_run(sexp, tags={"kind": "sweep", "profile": "smoke", "study_name": "test-sweep"})
+    for trial, (m, obj, state) in enumerate([(1, 0.5, "COMPLETE"), (3, 0.3, "COMPLETE"), (5, 0.9, "PRUNED"),
+                                             (3, 0.2, "COMPLETE")]):
+        rid = _child(client, sexp, sp.info.run_id, "reacher", "ac-lstm-mdn", 0, {"objective": obj},
+                     params={"mixtures": m, "u": 5}, extra_tags={"trial": str(trial), "state": state})
+        client.log_batch(rid, metrics=[Metric("val/metric", obj + 1.0 / (i + 1), 0, i) for i in range(4)])
+    client.set_terminated(sp.info.run_id)
+    return {"uri": uri, "tmp": tmp, "parent": pid, "old": old.info.run_id, "ids": ids, "client": client}
+
+
+@pytest.fixture(scope="module")
+def built(store, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    assert main(["--tracking-uri", store["uri"], "--out", str(out)]) == 0
+    return out
+
+
+def test_every_table_and_figure_is_produced(built):
+    folder = built / "test-study"
+    for table in ("success_table", "circle_table", "train_time_table", "metrics_table"):
+        for ext in ("md", "html", "tex", "csv"):
+            assert (folder / f"{table}.{ext}").stat().st_size > 0, (table, ext)
+    for fig in ("success_bars", "circles", "compute_time", "train_time", "training_curves", "tip_paths",
+                "changing_goal"):
+        for ext in ("png", "pdf"):
+            assert (folder / f"{fig}.{ext}").stat().st_size > 1000, (fig, ext)
+        assert f"{fig}.png" in (folder / "index.html").read_text()
+    for fig in ("sweep_history", "sweep_params", "sweep_intermediate"):
+        assert (built / "test-sweep" / f"{fig}.png").exists()
+    assert not (built / "old-study").exists()  # default = latest study of each kind
+    root = (built / "index.html").read_text()
+    assert "test-study/index.html" in root and "test-sweep/index.html" in root
+
+
+def test_success_numbers_equal_logged_and_wilson_equals_scipy(store):
+    study = Store(store["uri"]).studies("ablation")[0]
+    agg = success_summary(study).set_index(["variant", "eval_task"])
+    for task, logged in (("reacher", REACHER), ("reacher-changing-goal", CHANGING)):
+        for v in VARIANTS:
+            seeds = [s for s in SEEDS if (v, s) != FAILED]
+            row = agg.loc[(v, task)]
+            assert row["mean"] == pytest.approx(np.mean([logged[v, s] for s in seeds]))
+            k = sum(round(logged[v, s] * N_ROLLOUTS) for s in seeds)
+            n = N_ROLLOUTS * len(seeds)
+            assert (row["successes"], row["n"]) == (k, n)
+            ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
+            assert (row["ci_low"], row["ci_high"]) == pytest.approx((ci.low, ci.high))
+    assert math.isnan(wilson_interval(0, 0)[0])
+
+
+def test_failed_and_missing_cells_are_marked(store, built):
+    study = Store(store["uri"]).studies("ablation")[0]
+    agg = success_summary(study).set_index(["variant", "eval_task"])
+    assert agg.loc[("ac-lstm-mdn", "reacher"), "status"] == "partial"
+    assert "seed 1: FAILED" in agg.loc[("ac-lstm-mdn", "reacher"), "note"]
+    assert agg.loc[("lstm", "reacher"), "status"] == "ok"
+    for task in ("pick-place", "stack", "pick-place-changing-goal"):  # no run trained pick-place
+        assert agg.loc[("lstm", task), "status"] == "gap"
+    md = (built / "test-study" / "success_table.md").read_text()
+    assert "†" in md and "gap" in md
+    assert "FAILED" in (built / "test-study" / "index.html").read_text()
+
+
+def test_circle_table_equals_logged(built):
+    import pandas as pd
+    df = pd.read_csv(built / "test-study" / "circle_table.csv").set_index(["radius_cm", "variant"])
+    for (v, r), rmse in RMSE.items():
+        assert df.loc[(float(r), v), "rmse_mean"] == pytest.approx(rmse)
+        assert df.loc[(float(r), v), "maxerr_mean"] == pytest.approx(100 * rmse / (r / 100))
+
+
+def test_report_is_logged_to_parent_and_rebuild_is_idempotent(store, built):
+    client = store["client"]
+    names = {f.path for f in client.list_artifacts(store["parent"], "report")}
+    assert "report/index.html" in names and "report/success_table.tex" in names
+    folder = built / "test-study"
+    listing = sorted(p.name for p in folder.iterdir())
+    table = (folder / "success_table.csv").read_text()
+    study = Store(store["uri"]).studies(study=store["parent"])[0]
+    again = build_report(study, built, log_artifacts=False)
+    assert again.folder == folder
+    assert sorted(p.name for p in folder.iterdir()) == listing
+    assert (folder / "success_table.csv").read_text() == table
+
+
+def test_study_without_artifacts_marks_figure_gaps(store, tmp_path):
+    assert main(["--tracking-uri", store["uri"], "--study", "old-study", "--out", str(tmp_path),
+                 "--no-log-artifacts"]) == 0
+    index = (tmp_path / "old-study" / "index.html").read_text()
+    for fig in ("circles", "tip_paths", "changing_goal", "compute_time"):
+        assert f"figure <b>{fig}</b>" in index
+        assert not (tmp_path / "old-study" / f"{fig}.png").exists()
+    assert (tmp_path / "old-study" / "success_table.md").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--experiment", "nope"], "unknown experiment 'nope'"),
+    (["--study", "0123abc"], "unknown study '0123abc'"),
+])
+def test_unknown_selection_is_one_line_exit_2(store, args, message, capsys, tmp_path):
+    assert main(["--tracking-uri", store["uri"], "--out", str(tmp_path), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+
+
+def test_empty_or_missing_store_is_one_line_exit_2(tmp_path, capsys):
+    assert main(["--tracking-uri", f"sqlite:///{tmp_path / 'absent.db'}", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no MLflow store" in err and "\n" not in err
+    assert not (tmp_path / "absent.db").exists()  # reading never creates a store
+    empty = f"sqlite:///{tmp_path / 'empty.db'}"
+    MlflowClient(empty).search_experiments()  # creates the schema, no runs
+    capsys.readouterr()  # MLflow's own schema-creation log lines
+    assert main(["--tracking-uri", empty, "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("reports: error: no studies") and "\n" not in err
+
