@@ -49,7 +49,7 @@ def _ablation_parts(study: Study, folder: Path) -> tuple[list[Table], list[Figur
 def _sweep_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureResult]]:
     tabs = [tables.generic_metrics_table(study)]
     figs = [figures.sweep_history(study, folder), figures.sweep_params(study, folder),
-            figures.sweep_intermediate(study, folder), figures.training_curves(study, folder)]
+            figures.sweep_intermediate(study, folder)]
     return tabs, figs
 
 

@@ -427,11 +427,21 @@ def _sweep_frame(study: Study) -> pd.DataFrame:
     ch = study.children.copy()
     found = _objective(study)
     ch["objective"] = found[1] if found else np.nan
-    ch["trial_no"] = ch["trial"].fillna(pd.Series(range(len(ch)), index=ch.index)) \
-        if "trial" in ch else range(len(ch))
-    state = ch["state"].fillna(ch["status"]) if "state" in ch else ch["status"]
-    ch["trial_state"] = state.replace({"FINISHED": "COMPLETE", "FAILED": "FAIL"})
+    if "metrics.val/metric" in ch:  # pruned trials have no objective: show their last intermediate value
+        ch["objective"] = ch["objective"].fillna(ch["metrics.val/metric"])
+    ch["trial_no"] = ch["trial"].fillna(pd.Series(range(len(ch)), index=ch.index, dtype="Int64"))
+    state = ch["trial_state"].fillna(ch["status"])  # MLflow status when the trial tag is missing
+    ch["trial_state"] = state.replace({"FINISHED": "COMPLETE", "FAILED": "FAIL", "KILLED": "PRUNED"})
     return ch.sort_values("trial_no")
+
+
+OBJECTIVE_LABELS = {"val": "validation metric", "final_distance": "final distance to goal (m)"}
+
+
+def _objective_label(study: Study, metric: str) -> str:
+    """What the objective measures, from the sweep parent's param sweep.objective where logged."""
+    kind = study.parent.get("params.sweep.objective")
+    return f"objective: {OBJECTIVE_LABELS.get(kind, kind)}" if kind else metric
 
 
 def _direction(study: Study) -> str:
@@ -449,13 +459,15 @@ def sweep_history(study: Study, folder: Path) -> FigureResult:
     for state, marker, color in (("COMPLETE", "o", "tab:blue"), ("PRUNED", "s", "tab:gray"), ("FAIL", "x", "tab:red")):
         part = df[df["trial_state"] == state]
         if len(part):
-            ax.scatter(part["trial_no"], part["objective"], marker=marker, color=color, label=f"{state.lower()}")
+            ax.scatter(part["trial_no"], part["objective"], marker=marker, color=color,
+                       label="pruned (last intermediate value)" if state == "PRUNED" else state.lower())
     done = df[df["trial_state"] == "COMPLETE"].dropna(subset=["objective"])
     if len(done):
         best = done["objective"].cummin() if _direction(study) == "minimize" else done["objective"].cummax()
         ax.step(done["trial_no"], best, where="post", color="black", lw=1.2, label="best so far")
     ax.set_xlabel("trial number")
-    ax.set_ylabel(f"{found[0]} ({_direction(study)}d)")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    ax.set_ylabel(f"{_objective_label(study, found[0])} ({_direction(study)}d)")
     ax.set_title(f"{title} — {study.name}")
     ax.grid(alpha=0.3)
     ax.legend()
@@ -466,7 +478,9 @@ def sweep_params(study: Study, folder: Path) -> FigureResult:
     name, title = "sweep_params", "Sweep: objective vs each hyperparameter"
     found = _objective(study)
     df = _sweep_frame(study)
-    params = [c for c in df.columns if c.startswith("params.") and df[c].nunique(dropna=True) > 1]
+    # the sampled values (params trial.<name>); without them every param that varies between trials
+    params = [c for c in df.columns if c.startswith("params.trial.") and df[c].nunique(dropna=True) > 1] or \
+        [c for c in df.columns if c.startswith("params.") and df[c].nunique(dropna=True) > 1]
     if found is None or not params:
         return gap(name, title, "no objective or no varied params among the trials")
     fig, axes = plt.subplots(1, len(params), figsize=(3.4 * len(params), 3.4), squeeze=False)
@@ -478,8 +492,8 @@ def sweep_params(study: Study, folder: Path) -> FigureResult:
             ax.set_xticks(range(len(cats)), cats, rotation=30)
         colors = df["trial_state"].map({"COMPLETE": "tab:blue", "PRUNED": "tab:gray"}).fillna("tab:red")
         ax.scatter(vals, df["objective"], c=list(colors))
-        ax.set_xlabel(p.removeprefix("params."))
-        ax.set_ylabel(found[0])
+        ax.set_xlabel(p.removeprefix("params.").removeprefix("trial."))
+        ax.set_ylabel(_objective_label(study, found[0]))
         ax.grid(alpha=0.3)
     axes[0][0].scatter([], [], c="tab:blue", label="complete")
     axes[0][0].scatter([], [], c="tab:gray", label="pruned")

@@ -54,6 +54,8 @@ def aggregate_success(evals: pd.DataFrame, children: pd.DataFrame, variants: Seq
             low, high = wilson_interval(k, n)
             missing = [s for s in expected if s not in have]
             notes = []
+            if cell_runs.empty:  # the study never trained this cell: one note, not one per seed
+                missing, notes = [], [f"no {model_task_of(task)} run of this variant in the study"]
             for s in missing:
                 status = cell_runs.loc[cell_runs["seed"] == s, "status"]
                 notes.append(f"seed {s}: {status.iloc[0] if len(status) else 'no run'}")

@@ -20,8 +20,8 @@ Child artifact `rollouts/<E>.npz` (np.savez_compressed; metres, robot base frame
 Child artifact `rollouts/ik_timing.json`: {E: {"n_trajectories", "batch_size", "horizon",
     "stm_seconds_per_traj", "stm_batched_seconds_per_traj", "ik_seconds_per_traj",
     "ik_batched_seconds_per_traj"}}; absent -> the `time/*_seconds_per_traj` metrics of the run.
-Sweep children: tags `trial`, `state` (COMPLETE/PRUNED/FAIL), sampled hyperparameters as params,
-metric `objective`, intermediate `val/metric` (step = iteration); parent tag/param `direction`.
+Sweep children: tags `trial`, `trial_state` (COMPLETE/PRUNED/FAIL), sampled values as params `trial.<name>`,
+metric `objective`, intermediate `val/metric` (step = iteration); parent tag/param `direction` (default min).
 Anything missing is reported as a gap by the consumer, never a crash.
 """
 
@@ -111,6 +111,18 @@ class Study:
     def variants(self) -> list[str]:
         return order_variants(self.children["variant"].dropna().unique())
 
+    def unseen_radii_cm(self) -> set[float]:
+        """Circle radii the runs list as unseen in training (param eval.circle_unseen_radii, metres)."""
+        col = "params.eval.circle_unseen_radii"
+        out: set[float] = set()
+        for listed in self.children[col].dropna() if col in self.children else []:
+            for r in str(listed).split(","):
+                try:
+                    out.add(round(float(r) * 100, 1))
+                except ValueError:
+                    continue
+        return out
+
     @property
     def seeds(self) -> list[int]:
         return sorted(int(s) for s in self.children["seed"].dropna().unique())
@@ -139,12 +151,16 @@ class Study:
         return self._frames["circle"]
 
     def model_task_of(self, eval_task: str) -> str:
-        """The training task whose runs evaluate `eval_task`: from the store, else the paper's tasks, else the
-        envs registry (imported only then: it pulls in torch and pybullet)."""
+        """The training task whose runs evaluate `eval_task`: from the runs' metrics or `eval_tasks` tags, else
+        the paper's tasks, else the envs registry (imported only then: it pulls in torch and pybullet)."""
         em = self.eval_metrics()
         seen = em.loc[em["eval_task"] == eval_task, "task"].dropna().unique() if not em.empty else []
         if len(seen):
             return str(seen[0])
+        if "tags.eval_tasks" in self.children:  # a failed run may have logged no metric, but its tag says
+            for task, listed in zip(self.children["task"], self.children["tags.eval_tasks"], strict=True):
+                if isinstance(listed, str) and eval_task in listed.split(","):
+                    return str(task)
         if eval_task in FALLBACK_MODEL_TASK:
             return FALLBACK_MODEL_TASK[eval_task]
         try:  # reports may read envs constants (dependencies point reports -> envs)
@@ -312,12 +328,12 @@ def _clean(row: dict[str, Any]) -> dict[str, Any]:
 
 
 def _tidy_children(df: pd.DataFrame) -> pd.DataFrame:
-    """Identity columns (task, variant, seed, profile, config_hash, trial, state) from the tags; metric
+    """Identity columns (task, variant, seed, profile, config_hash, trial, trial_state) from the tags; metric
     and param columns kept under MLflow's names; `failed` marks FAILED/KILLED cells."""
     if df.empty:
         df = pd.DataFrame(columns=["run_id", "status", "start_time", "end_time"])
     df = df.copy()
-    for tag in ("task", "variant", "seed", "profile", "config_hash", "trial", "state"):
+    for tag in ("task", "variant", "seed", "profile", "config_hash", "trial", "trial_state"):
         col = f"tags.{tag}"
         df[tag] = df[col] if col in df.columns else pd.Series([None] * len(df), index=df.index, dtype=object)
     df["seed"] = pd.to_numeric(df["seed"], errors="coerce").astype("Int64")

@@ -178,6 +178,7 @@ def _cell(df: pd.DataFrame | None, radius: float, variant: str) -> tuple[float, 
 
 
 def circle_table(summary: pd.DataFrame, study: Study) -> Table:
+    unseen = study.unseen_radii_cm()
     columns = ["radius (cm)", "variant", "radial RMSE (m)", "max radial error (% of r)", "seeds",
                "paper RMSE", "paper max error"]
     rows = []
@@ -188,13 +189,14 @@ def circle_table(summary: pd.DataFrame, study: Study) -> Table:
         else:
             ours = [f"{r.rmse_mean:.4f} ± {r.rmse_std:.4f}" if not math.isnan(r.rmse_mean) else GAP,
                     f"{r.maxerr_mean:.1f} ± {r.maxerr_std:.1f}" if not math.isnan(r.maxerr_mean) else GAP]
-        rows.append([f"{r.radius_cm:g}", paper.variant_label(r.variant), *ours, str(r.seeds),
+        label = f"{r.radius_cm:g}" + (" (unseen)" if round(float(r.radius_cm), 1) in unseen else "")
+        rows.append([label, paper.variant_label(r.variant), *ours, str(r.seeds),
                      f"{paper_rmse:.3f}" if paper_rmse is not None else "–",
                      f"< {paper.CIRCLE_MAX_RADIAL_ERROR_PCT:g}%" if paper_rmse is not None else "–"])
     notes = ["Mean ± std over seeds of finished runs; RMSE of the measured tip's distance from the centre vs r.",
              f"Paper: average RMSE at 5/10/15 cm ({paper.CIRCLE_RMSE_UNIT_NOTE}); the radial error never "
-             f"exceeded {paper.CIRCLE_MAX_RADIAL_ERROR_PCT:g}% of r. Radii the paper does not report are unseen "
-             "in its evaluation."]
+             f"exceeded {paper.CIRCLE_MAX_RADIAL_ERROR_PCT:g}% of r. (unseen): a radius the runs list in "
+             "eval.circle_unseen_radii."]
     if summary.empty:
         rows = [[GAP, "–", GAP, GAP, "0", "–", "–"]]
         notes.insert(0, "gap: no run of this study logged circle/r{R}/* metrics.")

@@ -102,7 +102,8 @@ def store(tmp_path_factory):
                              "stm_batched_seconds_per_traj": 0.004, "ik_seconds_per_traj": 0.05,
                              "ik_batched_seconds_per_traj": 0.01}}
         _child(client, exp, pid, "circle", v, 0, circle | {"time/train_seconds": 5.0},
-               artifacts={"circle.npz": _rollouts(rng, "circle"), "ik_timing.json": timing}, tmp=tmp)
+               artifacts={"circle.npz": _rollouts(rng, "circle"), "ik_timing.json": timing}, tmp=tmp,
+               params={"eval.circle_radii": "0.05", "eval.circle_unseen_radii": "0.1"})
     client.set_terminated(pid)
     # A sweep study: 4 trials, one pruned.
     sexp = client.create_experiment("sweep", artifact_location=(tmp / "sweep-artifacts").as_uri())
@@ -110,7 +111,9 @@ def store(tmp_path_factory):
     for trial, (m, obj, state) in enumerate([(1, 0.5, "COMPLETE"), (3, 0.3, "COMPLETE"), (5, 0.9, "PRUNED"),
                                              (3, 0.2, "COMPLETE")]):
         rid = _child(client, sexp, sp.info.run_id, "reacher", "ac-lstm-mdn", 0, {"objective": obj},
-                     params={"mixtures": m, "u": 5}, extra_tags={"trial": str(trial), "state": state})
+                     params={"trial.m": m, "trial.u": 5, "model.mixtures": m, "train.iters": 10},
+                     extra_tags={"trial": str(trial), "trial_state": state},
+                     status="KILLED" if state == "PRUNED" else "FINISHED")
         client.log_batch(rid, metrics=[Metric("val/metric", obj + 1.0 / (i + 1), 0, i) for i in range(4)])
     client.set_terminated(sp.info.run_id)
     return {"uri": uri, "tmp": tmp, "parent": pid, "old": old.info.run_id, "ids": ids, "client": client}
@@ -175,6 +178,8 @@ def test_circle_table_equals_logged(built):
     for (v, r), rmse in RMSE.items():
         assert df.loc[(float(r), v), "rmse_mean"] == pytest.approx(rmse)
         assert df.loc[(float(r), v), "maxerr_mean"] == pytest.approx(100 * rmse / (r / 100))
+    md = (built / "test-study" / "circle_table.md").read_text()
+    assert "| 10 (unseen) |" in md and "| 5 |" in md
 
 
 def test_report_is_logged_to_parent_and_rebuild_is_idempotent(store, built):
