@@ -72,9 +72,11 @@ class TrainConfig(_Config):
     log_every: int = 10  # iterations between on_metrics calls
     val_every: int = 0  # iterations between validations (0: never)
     val_episodes: int = 16  # demonstrations replayed closed-loop for the validation metric
+    max_seconds: float = 0.0  # wall-clock budget of the run, resumed runs included (0: none)
     seed: int = 0
 
     def __post_init__(self) -> None:
+        _check(self.max_seconds >= 0, f"TrainConfig.max_seconds must be >= 0, got {self.max_seconds}")
         _check(self.iters >= 0, f"TrainConfig.iters must be >= 0, got {self.iters}")
         _check(self.batch_size >= 1, f"TrainConfig.batch_size must be >= 1, got {self.batch_size}")
         _check(self.lr > 0, f"TrainConfig.lr must be > 0, got {self.lr}")

@@ -90,7 +90,32 @@ class STM(nn.Module):
         """Head output -> one predicted next state in normalised units (the deterministic head ignores mode)."""
         if not self.is_mdn:
             return raw
-        return mdn.point(*self.mixture(raw), mode, temperature=temperature, generator=generator)
+        if mode == "sample":
+            return mdn.sample(*self.mixture(raw), temperature=temperature, generator=generator)
+        m = self.config.mixtures  # the means need neither sigmas nor a softmax: skip them (hot path)
+        logit_alpha, mu = raw[..., :m], raw[..., 2 * m:].unflatten(-1, (m, self.dim))
+        if mode == "component_mean":
+            return mdn.component_mean(logit_alpha, mu)
+        if mode == "mixture_mean":
+            return mdn.mixture_mean(logit_alpha, mu)
+        raise ValueError(f"unknown feedback mode {mode!r}; known: sample, component_mean, mixture_mean")
+
+    def cell_weights(self) -> list[tuple[torch.Tensor, ...]]:
+        """(w_ih, w_hh, b_ih, b_hh) of each LSTM layer, for single steps with torch.lstm_cell."""
+        return [tuple(getattr(self.lstm, f"{n}_l{k}") for n in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"))
+                for k in range(self.config.num_layers)]
+
+    def step(self, z: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor],
+             weights: list[tuple[torch.Tensor, ...]]) -> torch.Tensor:
+        """One LSTM time step (B, D) -> top hidden state (B, H), updating the per-layer h, c lists in place.
+
+        Same maths and weights as self.lstm, without its per-call set-up: a multi-layer
+        nn.LSTM call costs several times more than these cells for a single step."""
+        x = z
+        for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(weights):
+            h[k], c[k] = torch.lstm_cell(x, (h[k], c[k]), w_ih, w_hh, b_ih, b_hh)
+            x = h[k]
+        return x
 
 
 def initial_state(task, kin, q0: torch.Tensor, psi0: torch.Tensor, grip0: torch.Tensor | None = None) -> torch.Tensor:
@@ -109,7 +134,7 @@ def feedback_state(task, kin, pred: torch.Tensor, q_prev: torch.Tensor, psi: tor
     and rollouts, so both see identically built states.
     """
     layout = task.layout
-    q = kin.clamp(q_prev + pred[..., layout.dq])
+    q = torch.clamp(q_prev + pred[..., layout.dq], kin.lower, kin.upper)  # the robot stays within its limits
     grip = None
     if layout.gripper:
         g = pred[..., layout.grip.start].clamp(0.0, 1.0)

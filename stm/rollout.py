@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from envs.kinematics import default_kinematics
 from envs.tasks.base import Episode, Task
+from stm.fk import default_tip_kinematics
 from stm.model import STM, feedback_state, initial_state
 
 log = logging.getLogger(__name__)
@@ -62,7 +62,7 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
                          f"state size {task.layout.dim}")
     was_training = model.training
     model.eval()
-    kin = default_kinematics(torch.float32)
+    kin = default_tip_kinematics(torch.float32)
     gen = torch.Generator().manual_seed(seed)
     horizons = np.array([ep.horizon for ep in episodes], dtype=np.int64)
     H = int(horizons.max())

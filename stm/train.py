@@ -30,6 +30,7 @@ from envs.kinematics import default_kinematics
 from envs.tasks.base import Demos, Episode, Task
 from stm.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
+from stm.fk import default_tip_kinematics
 from stm.model import STM, feedback_state, layout_to_dict, normalization_stats
 
 log = logging.getLogger(__name__)
@@ -109,6 +110,7 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
         raw, _ = model(z_gt)
         return (raw, z_gt) if return_inputs else raw
     hs, inputs = [], []
+    weights = model.cell_weights()
     hc = None
     t = 0
     while t < T:
@@ -117,20 +119,24 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
         hs.append(h)
         inputs.append(z_gt[:, t: t + n])
         t += n
+        k = min(cfg.v, T - t)
+        if k == 0:
+            continue
         q = batch.q[:, t - 1]
         last = h[:, -1]
-        for _ in range(min(cfg.v, T - t)):  # self-fed steps
+        hl, cl = list(hc[0].unbind(0)), list(hc[1].unbind(0))
+        for _ in range(k):  # self-fed steps: single LSTM cells, no per-call set-up
             pred = model.denormalize(model.predict(model.head(last), cfg.feedback, temperature=cfg.temperature,
                                                    generator=generator))
             s, q = feedback_state(task, kin, pred, q, batch.psi[:, t], cfg.phi_mode)
             z = model.normalize(s)
             if cfg.detach_feedback:
                 z, q = z.detach(), q.detach()
-            h, hc = model.lstm(z.unsqueeze(1), hc)
-            hs.append(h)
+            last = model.step(z, hl, cl, weights)
+            hs.append(last.unsqueeze(1))
             inputs.append(z.unsqueeze(1))
-            last = h[:, 0]
             t += 1
+        hc = (torch.stack(hl), torch.stack(cl))
     raw = model.head(torch.cat(hs, dim=1))
     return (raw, torch.cat(inputs, dim=1)) if return_inputs else raw
 
@@ -183,7 +189,7 @@ def _checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, 
     }
 
 
-_RESUME_FREE = {"iters", "checkpoint_every", "log_every", "val_every"}  # may change between runs
+_RESUME_FREE = {"iters", "checkpoint_every", "log_every", "val_every", "max_seconds"}  # may change between runs
 
 
 def _check_resumable(ckpt: dict, model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, path: Path) -> None:
@@ -206,7 +212,7 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
           on_validation: Callable[[int, float], bool] | None = None,
           progress: bool = False) -> TrainResult:
     """Train an STM on `demos` of `task`; see the module docstring for the schedule."""
-    kin = default_kinematics(torch.float32)
+    kin = default_tip_kinematics(torch.float32)
     data = DemoTensors.build(task, demos)
     N = len(demos)
     valid = torch.arange(data.states.shape[1])[None, :] <= data.lengths[:, None]
@@ -248,6 +254,9 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
     model.train()
     try:
         while iteration < train_cfg.iters and not stopped_early:
+            if train_cfg.max_seconds and seconds_before + time.perf_counter() - t0 >= train_cfg.max_seconds:
+                log.info("time budget of %.0f s reached at iteration %d", train_cfg.max_seconds, iteration)
+                break
             batch = data.batch(_sample_indices(N, train_cfg.batch_size, gen))
             loss = batch_loss(model, batch, task, train_cfg, kin, gen)
             if not torch.isfinite(loss):

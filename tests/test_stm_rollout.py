@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import tip_position_np

@@ -1,0 +1,200 @@
+"""Speed of the STM: training iterations and rollout throughput, side by side.
+
+    python -m stm.bench [--json] [--rounds 5] [--threads 1] [--sizes reacher pick-place]
+
+One training iteration = forward, loss, backward, Adam step, on a batch at the
+paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
+reacher (3x64, 3 Gaussians, batch 45, 70 steps), with the task's state size.
+Timed in the same run, interleaved round by round (the machine is shared, so
+medians of interleaved rounds give fair ratios): teacher forcing (tf),
+auto-conditioning with u = v = 2 and u = v = 5, and a plain reference (nn.LSTM +
+linear MDN head + mixture NLL in a dozen lines). Then 1,000 reacher rollouts of
+70 steps with FK grounding. Ratios are what to read; absolute times depend on load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from envs.robot import NEUTRAL_Q
+from envs.tasks.base import Demos, Episode, StateLayout, Task
+from stm import mdn
+from stm.config import ModelConfig, TrainConfig
+from stm.fk import default_tip_kinematics
+from stm.model import STM, normalization_stats
+from stm.rollout import generate
+from stm.train import DemoTensors, batch_loss
+
+SIZES = {  # paper sizes: (hidden, mixtures, batch, steps, gripper)
+    "pick-place": dict(hidden=128, mixtures=20, batch=32, steps=170, gripper=True),
+    "reacher": dict(hidden=64, mixtures=3, batch=45, steps=70, gripper=False),
+}
+
+
+class BenchTask(Task):
+    """phi = tip - goal, psi = goal (reacher and pick-place alike); layout of the named task."""
+
+    def __init__(self, name: str, gripper: bool):
+        self.name = self.model_task = name
+        self.layout = _task_layout(name, gripper)
+
+    def phi(self, tip_pos, psi):
+        return tip_pos - psi
+
+
+def _task_layout(name: str, gripper: bool) -> StateLayout:
+    try:
+        from envs.tasks import get_task
+
+        return get_task(name).layout
+    except Exception:  # the task may not be registered yet: same sizes as documented
+        return StateLayout(phi_dim=3, psi_dim=3, gripper=gripper)
+
+
+def bench_demos(n: int, steps: int, gripper: bool, seed: int = 0) -> Demos:
+    """Smooth random joint paths around the neutral pose (timing only needs realistic magnitudes)."""
+    rng = np.random.default_rng(seed)
+    dq = rng.normal(0, 0.01, size=(n, steps, 7)).cumsum(axis=1) * 0.1
+    q = NEUTRAL_Q + np.concatenate([np.zeros((n, 1, 7)), dq.cumsum(axis=1)], axis=1)
+    grip = (np.arange(steps + 1)[None] > steps // 2).astype(float).repeat(n, 0) if gripper else np.zeros((n, steps + 1))
+    psi = np.repeat(rng.uniform([0.4, -0.2, 0.0], [0.8, 0.4, 0.2], size=(n, 1, 3)), steps + 1, axis=1)
+    return Demos(q=q, grip=grip, psi=psi, lengths=np.full(n, steps))
+
+
+class PlainMDN(nn.Module):
+    """The reference: nn.LSTM + a linear MDN head, nothing else."""
+
+    def __init__(self, dim: int, hidden: int, layers: int, m: int):
+        super().__init__()
+        self.m, self.dim = m, dim
+        self.lstm = nn.LSTM(dim, hidden, layers, batch_first=True)
+        self.head = nn.Linear(hidden, m * (dim + 2))
+
+    def loss(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        out = self.head(self.lstm(x)[0])
+        return mdn.mixture_nll(*mdn.split_params(out, self.m, self.dim, 1e-3), y).mean()
+
+
+def _timer(fn, rounds: int, reps: int) -> list[float]:
+    return [_time_once(fn, reps) for _ in range(rounds)]
+
+
+def _time_once(fn, reps: int) -> float:
+    start = time.perf_counter()
+    for _ in range(reps):
+        fn()
+    return (time.perf_counter() - start) / reps
+
+
+def training_bench(size: str, rounds: int, reps: int) -> dict:
+    spec = SIZES[size]
+    task = BenchTask(size, spec["gripper"])
+    demos = bench_demos(spec["batch"], spec["steps"], spec["gripper"])
+    data = DemoTensors.build(task, demos)
+    valid = torch.ones(data.states.shape[:2], dtype=torch.bool)
+    stats = normalization_stats(data.states, valid)
+    kin = default_tip_kinematics(torch.float32)
+    batch = data.batch(torch.arange(spec["batch"]))
+    torch.manual_seed(0)
+    model = STM(ModelConfig(hidden_size=spec["hidden"], num_layers=3, mixtures=spec["mixtures"]), task.layout, *stats)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    gen = torch.Generator().manual_seed(0)
+    plain = PlainMDN(task.layout.dim, spec["hidden"], 3, spec["mixtures"])
+    plain_opt = torch.optim.Adam(plain.parameters(), lr=1e-4)
+    x, y = model.normalize(batch.states[:, :-1]), model.normalize(batch.states[:, 1:])
+
+    def stm_step(cfg: TrainConfig):
+        def step():
+            loss = batch_loss(model, batch, task, cfg, kin, gen)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+        return step
+
+    def plain_step():
+        loss = plain.loss(x, y)
+        plain_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        plain_opt.step()
+
+    cases = {"plain": plain_step, "tf": stm_step(TrainConfig(v=0)), "ac_u2v2": stm_step(TrainConfig(u=2, v=2)),
+             "ac_u5v5": stm_step(TrainConfig(u=5, v=5))}
+    for fn in cases.values():  # warm-up
+        fn()
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(rounds):  # interleaved, so a load change hits every case alike
+        for k, fn in cases.items():
+            times[k].append(_time_once(fn, reps))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {
+        "size": size, "state_dim": task.layout.dim, **{k: spec[k] for k in ("hidden", "mixtures", "batch", "steps")},
+        "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items()},
+        "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
+        "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
+        "ratio_tf_over_plain": round(med["tf"] / med["plain"], 3),
+    }
+
+
+def rollout_bench(n: int = 1000, steps: int = 70, rounds: int = 3) -> dict:
+    task = BenchTask("reacher", False)
+    torch.manual_seed(0)
+    demos = bench_demos(8, steps, False)
+    data = DemoTensors.build(task, demos)
+    stats = normalization_stats(data.states, torch.ones(data.states.shape[:2], dtype=torch.bool))
+    model = STM(ModelConfig(hidden_size=64, num_layers=3, mixtures=3), task.layout, *stats).eval()
+    rng = np.random.default_rng(0)
+    episodes = [Episode(q0=NEUTRAL_Q + rng.uniform(-0.2, 0.2, 7),
+                        psi=np.repeat(rng.uniform([0.4, -0.2, 0.0], [0.8, 0.4, 0.2])[None], steps + 1, 0),
+                        horizon=steps) for _ in range(n)]
+    generate(model, task, episodes[:8])  # warm-up
+    secs = [generate(model, task, episodes).seconds for _ in range(rounds)]
+    return {"rollouts": n, "steps": steps, "fk_grounding": True, "seconds": round(statistics.median(secs), 3),
+            "seconds_all": [round(s, 3) for s in secs]}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description="STM speed: training iterations and rollouts, as ratios")
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--reps", type=int, default=2, help="iterations per timed round")
+    ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (0: leave torch's default)")
+    ap.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
+    ap.add_argument("--no-rollouts", action="store_true")
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()
+    result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
+              "load_average_before": [round(x, 2) for x in load_before],
+              "training": [training_bench(s, args.rounds, args.reps) for s in args.sizes]}
+    if not args.no_rollouts:
+        result["rollouts"] = rollout_bench()
+    result["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        print(f"torch {result['torch']}, {result['threads']} thread(s), load {load_before[0]:.1f}")
+        for r in result["training"]:
+            ms = r["ms_per_iter"]
+            print(f"{r['size']:>10} (3x{r['hidden']}, {r['mixtures']} Gaussians, batch {r['batch']}, "
+                  f"{r['steps']} steps, D={r['state_dim']}): "
+                  + ", ".join(f"{k} {v:.1f} ms" for k, v in ms.items())
+                  + f" | ac2/tf {r['ratio_ac_u2v2_over_tf']:.2f}, ac5/tf {r['ratio_ac_u5v5_over_tf']:.2f},"
+                  f" tf/plain {r['ratio_tf_over_plain']:.2f}")
+        if "rollouts" in result:
+            ro = result["rollouts"]
+            print(f"rollouts: {ro['rollouts']} x {ro['steps']} steps with FK grounding in {ro['seconds']:.2f} s")
+    return result
+
+
+if __name__ == "__main__":
+    main()
