@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 
 import numpy as np
 import pytest
@@ -23,6 +24,14 @@ def cache(tmp_path, monkeypatch):
 @pytest.fixture
 def small():
     return get_task("reacher", n_demos=3)
+
+
+@pytest.fixture(scope="module")
+def good_entry(tmp_path_factory):
+    """A valid cache entry (reacher, 3 demos, seed 1), generated once for the damage tests."""
+    d = tmp_path_factory.mktemp("good")
+    demos = load_demos(get_task("reacher", n_demos=3), seed=1, cache_dir=d)
+    return demos, cache_paths("reacher", 1, d)
 
 
 def _warnings(caplog):
@@ -88,9 +97,12 @@ def _missing_arrays(npz, meta):
 
 @pytest.mark.parametrize("damage", [_corrupt_garbage, _truncate, _tamper_arrays, _garble_metadata,
                                     _old_format, _missing_arrays])
-def test_damaged_cache_is_reported_once_and_rebuilt(cache, small, caplog, damage):
-    good = load_demos(small, seed=1)
+def test_damaged_cache_is_reported_once_and_rebuilt(cache, small, caplog, damage, good_entry):
+    good, sources = good_entry
+    cache.mkdir(parents=True)
     npz, meta = cache_paths("reacher", 1, cache)
+    for src, dst in zip(sources, (npz, meta), strict=True):
+        shutil.copy(src, dst)
     damage(npz, meta)
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="envs.datasets"):

@@ -109,7 +109,7 @@ def test_evaluate_rejects_bad_trajectories(task):
 
 
 def test_demos_are_deterministic_per_seed():
-    small = get_task("reacher", n_demos=3)
+    small = get_task("reacher", n_demos=2)
     a, b, c = small.demos(7), small.demos(7), small.demos(8)
     assert np.array_equal(a.q, b.q) and np.array_equal(a.psi, b.psi)
     assert not np.array_equal(a.psi[:, 0], c.psi[:, 0])
