@@ -22,6 +22,7 @@ import logging
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from envs.robot import LIMITS, NEUTRAL_Q
 from envs.tasks.base import Demos, Episode, StateLayout, Task, register
@@ -101,7 +102,7 @@ class Circle(Task):
         change it. A radius whose expert fails cannot be resampled: that raises."""
         q, ok = self.expert(self.radii)
         rejections = {"ik": int((~ok).sum()), "physics": 0}
-        for i, r in enumerate(self.radii):
+        for i, r in enumerate(tqdm(self.radii, desc="circle demos: physics replay", disable=None, leave=False)):
             if ok[i] and not self.play_metrics(q[i], r)["success"]:
                 rejections["physics"] += 1
                 ok[i] = False

@@ -24,6 +24,7 @@ import logging
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from envs.kinematics import tip_position_np
 from envs.robot import LIMITS, NEUTRAL_Q
@@ -155,7 +156,7 @@ class Reacher(Task):
             q0 = self.sample_starts(rng, need)
             goals = self.sample_goals(rng, tip_position_np(q0))
             q, steps, ok = self.expert(q0, goals)
-            for b in range(need):
+            for b in tqdm(range(need), desc=f"{self.name} demos: physics replay", disable=None, leave=False):
                 if not ok[b]:
                     rejections["ik"] += 1
                     continue
