@@ -4,12 +4,12 @@ contact parameters of the gripper, spawning blocks and checking where they rest.
 Facts and choices (all positions in the base frame, metres):
 - Blocks are 4 cm cubes of 50 g (the open gripper leaves 4.85 mm on each side
   of a block; closed on a block, each 40 N finger pushes through friction 1.5).
-- Contact parameters: block lateral friction 1.0, finger pads 1.5 (pybullet
-  multiplies the two: 1.5 between a pad and a block), small spinning and rolling
-  friction on blocks so a held block neither pivots nor creeps when released.
-  Block restitution is 0, so a released block settles at once. Blocks use pybullet's
-  friction anchors: without them a squeezed block creeps (1-3 mm per carry) through
-  the soft contacts; with them the block stays put in the hand (< 0.1 mm).
+- Contact parameters: block and table lateral friction 1.0, finger pads 1.5 (pybullet
+  multiplies the two: 1.5 between a pad and a block). Block restitution is 0, so a
+  released block settles at once. Blocks use pybullet's friction anchors: without them
+  a squeezed block creeps (1-3 mm per carry) through the soft contacts; with them it
+  stays put in the hand (< 0.1 mm). Spinning/rolling friction is left at 0: with the
+  anchors it changed nothing measurable and made the physics about 1.5x slower.
 - The two fingers are coupled by a gear constraint (ratio -1), like the real gripper's
   mechanism (the URDF's <mimic>, which pybullet ignores): without it, two independent
   force-limited finger motors squeezing a block let the solver push it against one pad,
@@ -32,8 +32,6 @@ from envs.sim import TABLE_TOP_Z, Scene
 BLOCK_SIZE = 0.04  # edge of the cube (m)
 BLOCK_MASS = 0.05  # kg
 BLOCK_FRICTION = 1.0
-BLOCK_SPINNING_FRICTION = 0.002
-BLOCK_ROLLING_FRICTION = 0.0005
 FINGER_FRICTION = 1.5
 FINGER_COUPLING_FORCE = 2000.0  # N, max force of the finger gear constraint
 FINGER_COUPLING_ERP = 0.5
@@ -80,9 +78,7 @@ class BlockWorld:
         rgba = BLOCK_RGBA[len(self.blocks) % len(BLOCK_RGBA)]
         body = self.scene.add_box((h, h, h), (float(xy[0]), float(xy[1]), level_z(level) + h),
                                   mass=BLOCK_MASS, rgba=rgba, lateral_friction=BLOCK_FRICTION)
-        p.changeDynamics(body, -1, spinningFriction=BLOCK_SPINNING_FRICTION,
-                         rollingFriction=BLOCK_ROLLING_FRICTION, restitution=0.0, frictionAnchor=1,
-                         physicsClientId=self.client)
+        p.changeDynamics(body, -1, restitution=0.0, frictionAnchor=1, physicsClientId=self.client)
         self.blocks.append(body)
         return body
 
