@@ -14,6 +14,7 @@ import copy
 import dataclasses
 import hashlib
 import json
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -203,7 +204,7 @@ def _build(cls: type, raw: dict[str, Any], prefix: str) -> Any:
 
 def _check_positive(name: str, value: int | float, minimum: int | float = 1) -> None:
     if value < minimum:
-        raise ConfigError(f"{name}: must be >= {minimum}, got {value!r}")
+        raise ConfigError(f"{name}: {value!r} is not allowed; allowed: integers >= {minimum}")
 
 
 def _check_choice(name: str, value: Any, allowed: tuple[str, ...] | list[str]) -> None:
@@ -227,6 +228,11 @@ def _check_stm_section(name: str, values: dict[str, Any], cls: type) -> dict[str
         cls.from_dict({**defaults.to_dict(), **out})
     except (ValueError, TypeError) as e:
         msg = str(e).replace(f"{cls.__name__}.", f"{name}.")  # stm names fields ClassName.field
+        # stm says "F must be one of (...), got X" / "F must be >= 0, got X": restate in our one-line form
+        m = re.fullmatch(r"(\S+) must be (?:one of )?(.+), got (.+)", msg)
+        if m:
+            allowed = m.group(2).strip("()").replace("'", "")
+            msg = f"{m.group(1)}: {m.group(3)} is not allowed; allowed: {allowed}"
         raise ConfigError(msg if msg.startswith(f"{name}.") else f"{name}: {msg}") from None
     return out
 

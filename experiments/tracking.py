@@ -180,8 +180,16 @@ def provenance_params() -> dict[str, str]:
 
 
 def log_params(client: Client, run_id: str, params: Mapping[str, Any]) -> None:
-    # MLflow params are immutable: a resumed run re-logs identical values, which is allowed
-    client.log_batch(run_id, params=[Param(k, str(v)[:6000]) for k, v in params.items()])
+    """Log params once. MLflow params are immutable, so on a resumed/reused run a value that
+    changed since (e.g. the git commit) is recorded as a tag `changed.<key>` instead."""
+    existing = client.get_run(run_id).data.params
+    values = {k: str(v)[:6000] for k, v in params.items()}
+    new = [Param(k, v) for k, v in values.items() if k not in existing]
+    changed = {f"changed.{k}": v for k, v in values.items() if k in existing and existing[k] != v}
+    if new:
+        client.log_batch(run_id, params=new)
+    if changed:
+        set_tags(client, run_id, changed)
 
 
 def log_metrics(client: Client, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:

@@ -1,0 +1,189 @@
+"""Study configs, overrides, validation, hashing, the CLI's exit code 2, Wilson intervals and
+the tracking helpers (fast; no training)."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from experiments.cells import build_cells
+from experiments.config import ConfigError, available_profiles, load_profile, parse_override
+from experiments.stats import success_summary, wilson_interval
+from experiments.tracking import MetricBuffer, flatten, tracking_uri, with_retries
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_profiles_exist_and_load():
+    assert {"smoke", "quick", "paper"} <= set(available_profiles())
+    smoke = load_profile("smoke")
+    assert smoke.profile == "smoke" and smoke.seeds >= 1 and smoke.tasks
+    assert smoke.resolved_study_name() == "smoke"
+
+
+def test_paper_profile_has_the_paper_sizes():
+    from stm.config import ModelConfig, TrainConfig
+
+    cfg = load_profile("paper")
+    m, t = cfg.stm_dicts("reacher")
+    assert (m["hidden_size"], m["num_layers"], m["mixtures"], t["iters"]) == (64, 3, 3, 5000)
+    assert (t["u"], t["v"]) == (5, 5)
+    m, t = cfg.stm_dicts("pick-place")
+    assert (m["hidden_size"], m["num_layers"], m["mixtures"], t["iters"]) == (128, 3, 20, 30000)
+    ModelConfig.from_dict({**ModelConfig().to_dict(), **m})
+    TrainConfig.from_dict({**TrainConfig().to_dict(), **t})
+
+
+def test_overrides_apply_and_rename_the_study():
+    cfg = load_profile("smoke", ["train.iters=7", "model.sigma_min=1e-2", "eval.circle_radii=[0.05, 0.2]"])
+    assert cfg.train["iters"] == 7 and cfg.model["sigma_min"] == 0.01
+    assert cfg.eval.circle_radii == (0.05, 0.2)
+    assert cfg.resolved_study_name().startswith("smoke-") and cfg.resolved_study_name() != "smoke"
+    # selecting cells (tasks/variants/seeds/workers) does not change the study
+    assert load_profile("smoke", seeds=3, workers=2).resolved_study_name() == "smoke"
+
+
+def test_parse_override_reads_toml_values():
+    assert parse_override("train.iters=20") == (["train", "iters"], 20)
+    assert parse_override("train.lr=1e-4") == (["train", "lr"], 1e-4)
+    assert parse_override("train.detach_feedback=true") == (["train", "detach_feedback"], True)
+    assert parse_override("train.feedback=sample") == (["train", "feedback"], "sample")
+    assert parse_override("variants=[\"lstm\",\"ac-lstm\"]") == (["variants"], ["lstm", "ac-lstm"])
+    with pytest.raises(ConfigError, match="FIELD=VALUE"):
+        parse_override("train.iters")
+
+
+@pytest.mark.parametrize("override, field, allowed", [
+    ("train.foo=1", "train.foo", "iters"),
+    ("train.iters=abc", "train.iters", "integer"),
+    ("model.head=gru", "model.head", "deterministic"),
+    ("train.feedback=argmax", "train.feedback", "mixture_mean"),
+    ("eval.feedback=x", "eval.feedback", "component_mean"),
+    ("eval.rollouts=0", "eval.rollouts", ">= 1"),
+    ("variants=[\"gru\"]", "variants", "ac-lstm-mdn"),
+    ("tasks=[\"nope\"]", "tasks", "reacher"),
+    ("sweep.sampler=cmaes", "sweep.sampler", "tpe"),
+    ("sweep.space=[\"m\",\"lr\"]", "sweep.space", "sigma_min"),
+    ("bogus=1", "bogus", "variants"),
+])
+def test_bad_values_name_the_field_and_the_allowed_values(override, field, allowed):
+    with pytest.raises(ConfigError) as info:
+        load_profile("smoke", [override])
+    msg = str(info.value)
+    assert msg.startswith(field) and allowed in msg and "\n" not in msg
+
+
+def test_unknown_profile():
+    with pytest.raises(ConfigError, match="profile: unknown profile 'huge'; allowed: .*smoke"):
+        load_profile("huge")
+
+
+def test_cells_and_hashes():
+    cfg = load_profile("smoke", seeds=2)
+    cells = build_cells(cfg)
+    assert len(cells) == len(cfg.tasks) * len(cfg.variants) * 2
+    assert len({c.config_hash for c in cells}) == len(cells)
+    again = build_cells(load_profile("smoke", seeds=2))
+    assert [c.config_hash for c in cells] == [c.config_hash for c in again]
+    changed = build_cells(load_profile("smoke", ["train.iters=11"], seeds=2))
+    assert not {c.config_hash for c in cells} & {c.config_hash for c in changed}
+    by_variant = {c.variant: c for c in cells if c.seed == 0}
+    assert by_variant["lstm"].train["v"] == 0 and by_variant["lstm"].model["head"] == "deterministic"
+    assert by_variant["ac-lstm-mdn"].train["v"] > 0 and by_variant["ac-lstm-mdn"].model["head"] == "mdn"
+    assert cells[0].eval_tasks[0] == cells[0].task
+
+
+def test_wilson_matches_the_closed_form():
+    z = 1.959963984540054
+    for k, n in [(0, 20), (7, 20), (20, 20), (1, 3), (50, 50), (31, 50)]:
+        p = k / n
+        d = 1 + z * z / n
+        centre = (p + z * z / (2 * n)) / d
+        half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+        low, high = wilson_interval(k, n)
+        assert low == pytest.approx(centre - half, abs=1e-9) and high == pytest.approx(centre + half, abs=1e-9)
+    s = success_summary([1.0, 0.0, 1.0, 1.0])
+    assert s["success_rate"] == 0.75 and s["n_rollouts"] == 4 and s["success_ci_low"] < 0.75 < s["success_ci_high"]
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))
+
+
+def test_flatten():
+    assert flatten({"a": {"b": 1, "c": [1, 2]}, "d": "x"}) == {"a.b": "1", "a.c": "1,2", "d": "x"}
+
+
+def test_retries_only_on_lock_contention():
+    calls = {"n": 0}
+
+    def flaky():
+        calls["n"] += 1
+        if calls["n"] < 3:
+            raise RuntimeError("(sqlite3.OperationalError) database is locked")
+        return "ok"
+
+    assert with_retries(flaky, base_delay=0.001)() == "ok" and calls["n"] == 3
+
+    def broken():
+        calls["n"] += 1
+        raise ValueError("no such run")
+
+    calls["n"] = 0
+    with pytest.raises(ValueError):
+        with_retries(broken, base_delay=0.001)()
+    assert calls["n"] == 1
+
+
+def test_tracking_uri_default_and_env(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    assert tracking_uri() == f"sqlite:///{tmp_path.resolve() / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///sub/x.db")
+    assert tracking_uri() == f"sqlite:///{tmp_path.resolve() / 'sub' / 'x.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://tracking:5000")
+    assert tracking_uri() == "http://tracking:5000"
+
+
+def test_metric_buffer_batches(tmp_path):
+    from experiments.tracking import Client, get_or_create_experiment
+
+    client = Client(f"sqlite:///{tmp_path / 'm.db'}")
+    exp = get_or_create_experiment(client, "unit")
+    run = client.create_run(exp).info.run_id
+    buf = MetricBuffer(client, run, max_pending=1000)
+    for i in range(1, 31):
+        buf.add(i, {"train/loss": 1.0 / i})
+    assert client.get_metric_history(run, "train/loss") == []  # nothing written until a flush
+    buf.flush()
+    hist = client.get_metric_history(run, "train/loss")
+    assert [m.step for m in hist] == list(range(1, 31))
+    assert (tmp_path / "mlartifacts" / "unit").parent.name == "mlartifacts"
+
+
+def _cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    return subprocess.run([sys.executable, "-m", "experiments", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("args, field", [
+    (["ablation", "--profile", "smoke", "--variants", "gru"], "variants"),
+    (["ablation", "--profile", "smoke", "--tasks", "juggling"], "tasks"),
+    (["ablation", "--profile", "smoke", "--set", "train.iters=-5"], "train.iters"),
+    (["ablation", "--profile", "nope"], "profile"),
+    (["sweep", "--profile", "smoke", "--space", "m,lr"], "sweep.space"),
+    (["sweep", "--profile", "smoke", "--set", "train.val_every=0"], "train.val_every"),
+])
+def test_cli_rejects_bad_configs_with_exit_2_before_writing(tmp_path, args, field):
+    (tmp_path / "mlflow.db").write_bytes(b"")  # an existing (empty) store must stay untouched
+    before = sorted(p.name for p in tmp_path.iterdir())
+    proc = _cli(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    err_lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert len(err_lines) == 1 and err_lines[0].startswith(f"error: {field}") and "allowed" in err_lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    assert (tmp_path / "mlflow.db").read_bytes() == b""

@@ -1,0 +1,184 @@
+"""End to end on the smoke profile, into temporary MLflow/Optuna stores: a parallel ablation
+study with its runs, params, metrics and artifacts; a re-run that skips every cell; a cell
+killed with SIGKILL mid-training that resumes from its checkpoint artifact; a failing cell
+marked FAILED with its error; a 4-trial sweep with pruning that a re-run continues."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
+
+
+def _env(store: Path) -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(REPO), "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
+
+
+def _cli(args: list[str], store: Path, timeout: int = 400) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "experiments", *args], cwd=store, env=_env(store),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _children(client: MlflowClient, exp_id: str, parent_id: str):
+    return client.search_runs([exp_id], f"tags.`mlflow.parentRunId` = '{parent_id}'")
+
+
+@pytest.fixture(scope="module")
+def smoke_study(tmp_path_factory):
+    store = tmp_path_factory.mktemp("ablation")
+    proc = _cli(["ablation", "--profile", "smoke", "--workers", "2"], store)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    return store, proc
+
+
+def test_ablation_smoke_end_to_end(smoke_study):
+    store, proc = smoke_study
+    client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("ablation")
+    parents = client.search_runs([exp.experiment_id], "tags.role = 'parent'")
+    assert len(parents) == 1
+    parent = parents[0]
+    assert parent.info.status == "FINISHED"
+    assert parent.data.tags["kind"] == "ablation" and parent.data.tags["profile"] == "smoke"
+    assert parent.data.tags["study_name"] == "smoke"
+
+    children = _children(client, exp.experiment_id, parent.info.run_id)
+    assert sorted(r.data.tags["variant"] for r in children) == ["ac-lstm-mdn", "lstm"]
+    for run in children:
+        assert run.info.status == "FINISHED"
+        tags, params, metrics = run.data.tags, run.data.params, run.data.metrics
+        assert {tags["task"], tags["seed"], tags["profile"]} == {"reacher", "0", "smoke"}
+        assert len(tags["config_hash"]) == 16
+        assert params["train.iters"] == "10" and params["model.hidden_size"] == "16"
+        assert params["git_commit"] and params["version.torch"] and params["version.mlflow"]
+        for task in ("reacher", "reacher-changing-goal"):
+            assert metrics[f"{task}/n_rollouts"] == 4
+            assert 0.0 <= metrics[f"{task}/success_ci_low"] <= metrics[f"{task}/success_rate"] \
+                <= metrics[f"{task}/success_ci_high"] <= 1.0
+            assert metrics[f"{task}/final_distance_mean"] > 0.0
+        for key in ("time/train_seconds", "time/rollout_seconds", "time/generation_seconds_per_traj",
+                    "time/physics_seconds"):
+            assert metrics[key] > 0.0
+        steps = [m.step for m in client.get_metric_history(run.info.run_id, "train/loss")]
+        assert steps == [5, 10]  # log_every = 5, logged in batches, no duplicates
+        assert [m.step for m in client.get_metric_history(run.info.run_id, "val/metric")] == [5, 10]
+        artifacts = {f.path for d in ("checkpoint", "config", "figures")
+                     for f in client.list_artifacts(run.info.run_id, d)}
+        assert {"checkpoint/model.pt", "config/config.json", "figures/reacher_rollouts.png",
+                "figures/reacher-changing-goal_rollouts.png"} <= artifacts
+    assert "| variant | reacher | reacher-changing-goal |" in proc.stdout
+    assert f"#/experiments/{exp.experiment_id}/runs" in proc.stdout
+
+
+def test_rerun_skips_every_finished_cell(smoke_study):
+    store, _ = smoke_study
+    client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
+    before = {r.info.run_id for r in client.search_runs([client.get_experiment_by_name("ablation").experiment_id])}
+    proc = _cli(["ablation", "--profile", "smoke", "--workers", "2"], store)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "0 cell(s) run, 2 skipped" in proc.stdout
+    after = {r.info.run_id for r in client.search_runs([client.get_experiment_by_name("ablation").experiment_id])}
+    assert after == before
+
+
+def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name", "killed",
+            "--set", "train.iters=60", "--set", "train.val_every=0", "--set", "eval.figures=0"]
+    proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path, env=_env(tmp_path),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    run_id, deadline = None, time.monotonic() + 300
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.3)
+            try:
+                runs = client.search_runs([client.get_experiment_by_name("ablation").experiment_id],
+                                          "tags.role = 'cell'")
+            except Exception:  # store not created yet
+                continue
+            if runs and int(runs[0].data.tags.get("checkpoint_iteration", 0)) >= 5:
+                run_id = runs[0].info.run_id
+                os.killpg(proc.pid, signal.SIGKILL)
+                break
+    finally:
+        if proc.poll() is None and run_id is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert run_id is not None, "training finished or never checkpointed before the kill"
+    killed = client.get_run(run_id)
+    assert killed.info.status == "RUNNING"
+    killed_at = int(killed.data.tags["checkpoint_iteration"])
+    assert killed_at < 60
+
+    done = _cli(args, tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    run = client.get_run(run_id)
+    assert run.info.status == "FINISHED"
+    assert int(run.data.tags["resumed_from_iteration"]) >= killed_at
+    assert run.data.metrics["train/iterations"] == 60
+    steps = [m.step for m in client.get_metric_history(run_id, "train/loss")]
+    assert steps == sorted(set(steps)) and steps[-1] == 60  # continued, nothing logged twice
+    cells = client.search_runs([run.info.experiment_id], "tags.role = 'cell'")
+    assert [r.info.run_id for r in cells] == [run_id]
+
+
+def test_failed_cell_is_marked_with_its_error(tmp_path):
+    from experiments.cells import build_cells
+    from experiments.config import load_profile
+    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.worker import run_cell
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    cell = build_cells(load_profile("smoke", ["train.iters=2", "train.val_every=0"], variants=["lstm"]))[0]
+    bad = {**cell.to_dict(), "eval_tasks": ["reacher", "no-such-task"]}
+    client = Client(uri)
+    run_id = client.create_run(get_or_create_experiment(client, "ablation")).info.run_id
+    result = run_cell(bad, uri, run_id)
+    assert result.status == "FAILED" and "no-such-task" in result.error
+    run = client.get_run(run_id)
+    assert run.info.status == "FAILED" and "no-such-task" in run.data.tags["error"]
+
+
+def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
+    import optuna
+
+    proc = _cli(["sweep", "--profile", "smoke", "--trials", "4", "--workers", "1"], tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    journal = tmp_path / "optuna.journal"
+    assert journal.exists()
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(journal)))
+    study = optuna.load_study(study_name="reacher-ac-lstm-mdn-smoke", storage=storage)
+    states = [t.state.name for t in study.trials]
+    assert len(states) == 4 and set(states) <= {"COMPLETE", "PRUNED"}
+    assert "PRUNED" in states and "COMPLETE" in states
+    assert all(t.intermediate_values for t in study.trials)
+
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("sweep")
+    parent = client.search_runs([exp.experiment_id], "tags.role = 'parent'")[0]
+    trials = _children(client, exp.experiment_id, parent.info.run_id)
+    assert len(trials) == 4
+    by_number = {int(r.data.tags["trial"]): r for r in trials}
+    for t in study.trials:
+        run = by_number[t.number]
+        assert t.user_attrs["mlflow_run_id"] == run.info.run_id
+        assert run.info.status == {"COMPLETE": "FINISHED", "PRUNED": "KILLED"}[t.state.name]
+        assert set(t.params) == {k.removeprefix("trial.") for k in run.data.params if k.startswith("trial.")}
+    assert parent.data.metrics["best_value"] == pytest.approx(study.best_value)
+    figures = {f.path for f in client.list_artifacts(parent.info.run_id, "figures")}
+    assert "figures/optimization_history.png" in figures
+
+    again = _cli(["sweep", "--profile", "smoke", "--trials", "5", "--workers", "1"], tmp_path)
+    assert again.returncode == 0, again.stderr[-3000:]
+    study = optuna.load_study(study_name="reacher-ac-lstm-mdn-smoke", storage=storage)
+    assert len(study.trials) == 5
+    assert len(_children(client, exp.experiment_id, parent.info.run_id)) == 5
