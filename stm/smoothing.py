@@ -39,6 +39,10 @@ def _as_tensor(x, dtype=torch.float64) -> torch.Tensor:
     return x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x, dtype=float), dtype=dtype)
 
 
+def _as_numpy(x) -> np.ndarray:
+    return x.detach().cpu().double().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, dtype=float)
+
+
 def _check_skeleton(skeleton) -> None:
     if skeleton.ndim != 3 or skeleton.shape[-1] != 7 or skeleton.shape[1] < 2:
         raise ValueError(f"skeleton must have shape (B, T+1, 7) with T >= 1, got {tuple(skeleton.shape)}")
@@ -139,7 +143,7 @@ def smoothness_metrics(q, skeleton=None, goal=None, step_seconds: float = 0.1, r
       tip_deviation_m     mean over steps of ||tip(q_t) - tip(q~_t)||                 [m]
       goal_error_m        ||tip(q_T) - goal||                                         [m]
     """
-    q = q.detach().cpu().double().numpy() if isinstance(q, torch.Tensor) else np.asarray(q, dtype=float)
+    q = _as_numpy(q)
     _check_skeleton(q)
     dt = float(step_seconds)
     out: dict[str, np.ndarray] = {}
@@ -153,7 +157,7 @@ def smoothness_metrics(q, skeleton=None, goal=None, step_seconds: float = 0.1, r
         with torch.no_grad():
             tip = kin.tip_position(torch.as_tensor(q)).numpy()
     if skeleton is not None:
-        sk = skeleton.detach().cpu().double().numpy() if isinstance(skeleton, torch.Tensor) else np.asarray(skeleton, float)
+        sk = _as_numpy(skeleton)
         if sk.shape != q.shape:
             raise ValueError(f"skeleton shape {sk.shape} differs from trajectory shape {q.shape}")
         out["deviation_rad"] = np.linalg.norm(q - sk, axis=-1).mean(axis=1)
@@ -191,7 +195,9 @@ def smoothing_study(skeletons=None, goals=None, *, gamma: float = 5.0, goal_weig
     t1 = time.perf_counter()
     gd = smooth_gd(skeletons, gamma, iters=iters)
     t2 = time.perf_counter()
-    gd_goal = smooth_gd(skeletons, gamma, goal=goals, goal_weight=goal_weight, iters=iters) if goals is not None else None
+    gd_goal = None
+    if goals is not None:
+        gd_goal = smooth_gd(skeletons, gamma, goal=goals, goal_weight=goal_weight, iters=iters)
     t3 = time.perf_counter()
     results: dict = {"gamma": gamma, "goal_weight": goal_weight, "n_trajectories": len(skeletons),
                      "steps": skeletons.shape[1] - 1, "time_exact_s": t1 - t0, "time_gd_s": t2 - t1}
