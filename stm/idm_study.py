@@ -29,6 +29,7 @@ from envs.kinematics import tip_position_np
 from envs.sim import Scene
 from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, Tracking, save_idm, track_plan, train_idm
 from stm.idm_data import DEFAULT_CACHE_DIR, ExplorationConfig, idm_features, load_or_collect
+from stm.smoothing import smooth_gd
 from stm.torque_sim import TorqueWorld
 
 log = logging.getLogger(__name__)
@@ -46,6 +47,8 @@ class IDMStudyConfig:
     finetune_lr: float = 3e-4
     scratch_baseline: bool = True  # also train on the perturbed data alone
     plan_steps: int = 60
+    smoothing_gamma: float = 0.0  # > 0: smooth the plans first (stm.smoothing, the paper's pipeline)
+    smoothing_goal_weight: float = 0.0  # goal term of that smoothing (needs goals)
     step_seconds: float = 0.1  # the STM's step; the IDM runs at data.control_period
     torch_threads: int = 1  # small matmuls: extra threads only add contention on a shared CPU
 
@@ -55,6 +58,21 @@ class IDMStudyConfig:
         out.update({f"idm.{k}": v for k, v in asdict(self.idm).items()})
         out.update({k: v for k, v in asdict(self).items() if k not in ("data", "idm")})
         return out
+
+
+def study_profile(name: str) -> IDMStudyConfig:
+    """Sizes for smoke (seconds; tests), quick (the default, minutes on a laptop CPU)
+    and paper (more data and epochs)."""
+    if name == "smoke":
+        return IDMStudyConfig(data=ExplorationConfig(episodes=4, episode_seconds=2.0),
+                              idm=IDMConfig(hidden=64, epochs=3), real_episodes=2, finetune_epochs=2,
+                              scratch_baseline=False, plan_steps=15)
+    if name == "quick":
+        return IDMStudyConfig()
+    if name == "paper":
+        return IDMStudyConfig(data=ExplorationConfig(episodes=200), idm=IDMConfig(epochs=100), real_episodes=40,
+                              finetune_epochs=40)
+    raise ValueError(f"unknown IDM study profile {name!r}; known: smoke, quick, paper")
 
 
 def position_playback_tips(plans: np.ndarray, step_seconds: float) -> np.ndarray:
@@ -148,7 +166,11 @@ def idm_study(cfg: IDMStudyConfig = IDMStudyConfig(), plans: np.ndarray | None =
         elif goals is None:
             raise ValueError("idm_study: plans given without their goals")
         plans, goals = np.asarray(plans, dtype=float), np.asarray(goals, dtype=float).reshape(-1, 3)
+        if len(plans) != len(goals):
+            raise ValueError(f"idm_study: {len(plans)} plans but {len(goals)} goals")
         res: dict = {}
+        if cfg.smoothing_gamma > 0:
+            plans = smooth_gd(plans, cfg.smoothing_gamma, goal=goals, goal_weight=cfg.smoothing_goal_weight)
         position_tips = position_playback_tips(plans, cfg.step_seconds)
         rows = [position_metrics(pt, plan, g) for pt, plan, g in zip(position_tips, plans, goals, strict=True)]
         res.update({f"position/{k}": v for k, v in _mean_rows(rows).items()})

@@ -46,3 +46,17 @@ def jittery_skeletons(plans: np.ndarray, seed: int = 0, jitter: float = 0.02, dr
     noise = jitter * rng.standard_normal((B, T1, J)) + drift * ramp * rng.standard_normal((B, 1, J))
     noise[:, 0] = 0.0
     return plans + noise
+
+
+def stm_plans(model, goals: np.ndarray = FOUR_GOALS, horizon: int = 60, q_start: np.ndarray = NEUTRAL_Q,
+              task_name: str = "reacher", **generate_kwargs) -> np.ndarray:
+    """Skeletons (B, horizon+1, 7) unrolled by a trained reacher STM from q_start to
+    each goal (stm.rollout.generate; extra keyword arguments go to it)."""
+    from envs.tasks.base import Episode
+    from stm.rollout import generate
+
+    goals = np.asarray(goals, dtype=float).reshape(-1, 3)
+    q0 = np.asarray(q_start, dtype=float)
+    episodes = [Episode(q0=q0, psi=np.repeat(g[None], horizon + 1, axis=0), horizon=horizon, info={"goal": g.tolist()})
+                for g in goals]
+    return generate(model, get_task(task_name), episodes, **generate_kwargs).q.astype(float)

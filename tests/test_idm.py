@@ -120,3 +120,17 @@ def test_short_idm_rollout_in_pybullet_stays_stable():
     ctrl = IDMController(FastIDM(model))
     ctrl.reset(np.r_[NEUTRAL_Q, np.zeros(7)])
     assert len(ctrl.states) == 2 and len(ctrl.actions) == 2
+
+
+def test_idm_study_smoke_end_to_end(tmp_path):
+    from stm.idm_study import idm_study, study_profile
+
+    res = idm_study(study_profile("smoke"), cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
+    for cond in ("position", "sim", "real_sim_idm", "real_finetuned"):
+        assert 0 <= res[f"{cond}/tip_rmse_vs_plan_m"] < 1.0
+        assert res[f"{cond}/success_rate"] in (0.0, 0.25, 0.5, 0.75, 1.0)
+    assert res["position/success_rate"] == 1.0  # the expert's plans reach their goals
+    assert res["latency_fast_ms"] > 0 and res["data_samples"] == 4 * 198
+    assert all((tmp_path / "out" / n).exists() for n in ("idm_tracking.png", "idm_tracking.pdf", "idm_sim.pt"))
+    with pytest.raises(ValueError, match="profile"):
+        study_profile("huge")

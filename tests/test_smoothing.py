@@ -1,7 +1,10 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
+from envs.robot import NEUTRAL_Q
 from stm.plans import FOUR_GOALS, jittery_skeletons, straight_line_plans
 from stm.smoothing import smooth_exact, smooth_gd, smoothing_objective, smoothness_metrics
 
@@ -63,3 +66,25 @@ def test_bad_shapes_raise_clear_errors():
         smooth_exact(np.zeros((5, 7)))
     with pytest.raises(ValueError, match="gamma"):
         smooth_gd(np.zeros((1, 4, 7)), gamma=-1.0)
+
+
+def test_smoothing_study_writes_figure_and_metrics(tmp_path):
+    from stm.smoothing import smoothing_study
+
+    res = smoothing_study(steps=20, out_dir=tmp_path)
+    assert res["gd_vs_exact_max_abs_rad"] < 1e-6
+    assert res["gd_goal/goal_error_m"] < res["skeleton/goal_error_m"]
+    assert res["exact/mean_sq_jerk"] < res["skeleton/mean_sq_jerk"]
+    assert all(Path(p).exists() for p in res["figures"])
+
+
+def test_stm_plans_start_at_q_start():
+    from envs.tasks.base import get_task
+    from stm.config import ModelConfig
+    from stm.model import STM
+    from stm.plans import stm_plans
+
+    torch.manual_seed(0)
+    model = STM(ModelConfig(hidden_size=8, num_layers=1, mixtures=2), get_task("reacher").layout)
+    q = stm_plans(model, FOUR_GOALS[:2], horizon=5)
+    assert q.shape == (2, 6, 7) and np.allclose(q[:, 0], NEUTRAL_Q, atol=1e-6)
