@@ -59,7 +59,8 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 
 def model_from_checkpoint(ckpt: dict[str, Any]) -> STM:
-    model = STM(ModelConfig.from_dict(ckpt["model_config"]), layout_from_dict(ckpt["layout"]))
+    model = STM(ModelConfig.from_dict(ckpt["model_config"]), layout_from_dict(ckpt["layout"]),
+                phi_mode=ckpt["train_config"].get("phi_mode", "grounded"))
     model.load_state_dict(ckpt["model"])
     return model.eval()
 

@@ -42,9 +42,11 @@ def layout_from_dict(d: dict) -> StateLayout:
 
 class STM(nn.Module):
     def __init__(self, config: ModelConfig, layout: StateLayout,
-                 state_mean: torch.Tensor | None = None, state_std: torch.Tensor | None = None):
+                 state_mean: torch.Tensor | None = None, state_std: torch.Tensor | None = None,
+                 phi_mode: str = "grounded"):
         super().__init__()
         self.config, self.layout = config, layout
+        self.phi_mode = phi_mode  # how fed-back phi was built in training; rollouts default to the same
         dim = layout.dim
         self.dim = dim
         self.register_buffer("state_mean", torch.zeros(dim) if state_mean is None else state_mean.float().clone())

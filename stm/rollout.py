@@ -53,8 +53,12 @@ def _padded_psi(episodes: list[Episode], horizon: int) -> torch.Tensor:
 
 @torch.no_grad()
 def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str = "component_mean", seed: int = 0,
-             temperature: float = 1.0, phi_mode: str = "grounded") -> Rollouts:
-    """Unroll the model from each episode's q0 for its horizon."""
+             temperature: float = 1.0, phi_mode: str | None = None) -> Rollouts:
+    """Unroll the model from each episode's q0 for its horizon.
+
+    feedback: what the MDN head feeds back (sample | component_mean | mixture_mean);
+    phi_mode: None = as the model was trained (model.phi_mode)."""
+    phi_mode = phi_mode or model.phi_mode
     if not episodes:
         raise ValueError("generate needs at least one episode")
     if model.layout.dim != task.layout.dim:

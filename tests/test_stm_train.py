@@ -176,3 +176,10 @@ def test_batch_loss_is_finite_for_every_feedback_mode(toy):
     g = torch.Generator().manual_seed(0)
     for feedback in ("sample", "component_mean", "mixture_mean"):
         assert torch.isfinite(batch_loss(model, batch, task, TrainConfig(u=2, v=2, feedback=feedback), KIN, g))
+
+
+def test_phi_mode_travels_with_the_checkpoint(toy, tmp_path):
+    task, demos = toy
+    train(TINY, TrainConfig(iters=2, batch_size=2, u=1, v=1, phi_mode="free"), task, demos,
+          checkpoint_path=tmp_path / "free.pt")
+    assert load_model(tmp_path / "free.pt").phi_mode == "free"
