@@ -14,8 +14,13 @@ log = logging.getLogger("reports")
 DEFAULT_OUT = Path("reports/out")
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line and exit code 2, like every other bad input
+        self.exit(2, f"reports: error: {message} (see `python -m reports --help`)\n")
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m reports", description=__doc__.split("\n\n")[0])
+    p = _Parser(prog="python -m reports", description=__doc__.split("\n\n")[0])
     p.add_argument("--experiment", help="only the latest study of this experiment (study kind), e.g. ablation")
     p.add_argument("--study", help="a parent run id (or study_name) instead of the latest study")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output root; reports go to OUT/<study>/")
@@ -38,8 +43,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         store = Store(args.tracking_uri)
         studies = store.studies(args.experiment, args.study)
+        args.out.mkdir(parents=True, exist_ok=True)
     except StoreError as exc:
         print(f"reports: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"reports: error: cannot write to --out {args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     built = []
     for study in studies:

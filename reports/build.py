@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+import matplotlib.pyplot as plt
 
 from reports import figures, tables
 from reports.figures import FigureResult
@@ -33,23 +36,37 @@ class Report:
         return [f"{f.name}: {f.gap}" for f in self.figures if f.gap]
 
 
+def _figure(name: str, build: Callable[[], FigureResult]) -> FigureResult:
+    """One figure; data the builder did not foresee makes it a gap of the report, not the end of it."""
+    try:
+        return build()
+    except Exception as exc:  # noqa: BLE001
+        log.warning("figure %s failed", name, exc_info=True)
+        plt.close("all")
+        return FigureResult(name, name, gap=f"could not be drawn: {type(exc).__name__}: {exc}")
+
+
 def _ablation_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureResult]]:
     success = tables.success_summary(study)
     circle = tables.circle_summary(study)
     train = tables.train_time_summary(study)
     tabs = [tables.success_table(success, study), tables.circle_table(circle, study),
             tables.train_time_table(train, study), tables.generic_metrics_table(study)]
-    figs = [figures.success_bars(success, study, folder), figures.circles(study, folder),
-            figures.compute_time(study, folder), figures.train_time(train, study, folder),
-            figures.training_curves(study, folder), figures.tip_paths(study, folder),
-            figures.changing_goal(study, folder)]
+    figs = [_figure("success_bars", lambda: figures.success_bars(success, study, folder)),
+            _figure("circles", lambda: figures.circles(study, folder)),
+            _figure("compute_time", lambda: figures.compute_time(study, folder)),
+            _figure("train_time", lambda: figures.train_time(train, study, folder)),
+            _figure("training_curves", lambda: figures.training_curves(study, folder)),
+            _figure("tip_paths", lambda: figures.tip_paths(study, folder)),
+            _figure("changing_goal", lambda: figures.changing_goal(study, folder))]
     return tabs, figs
 
 
 def _sweep_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureResult]]:
     tabs = [tables.generic_metrics_table(study)]
-    figs = [figures.sweep_history(study, folder), figures.sweep_params(study, folder),
-            figures.sweep_intermediate(study, folder)]
+    figs = [_figure("sweep_history", lambda: figures.sweep_history(study, folder)),
+            _figure("sweep_params", lambda: figures.sweep_params(study, folder)),
+            _figure("sweep_intermediate", lambda: figures.sweep_intermediate(study, folder))]
     return tabs, figs
 
 

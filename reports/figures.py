@@ -15,7 +15,9 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")  # files only; never a window
+import matplotlib.lines  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
@@ -132,13 +134,22 @@ def success_bars(agg: pd.DataFrame, study: Study, folder: Path) -> FigureResult:
 
 
 # -------------------------------------------------------------------------------------------- circles
+def _default_circle_centre(path: np.ndarray) -> np.ndarray:
+    """The circle task's fixed centre (an envs constant), else the path's mean point."""
+    try:
+        from envs.tasks.circle import CENTRE
+        return np.asarray(CENTRE, dtype=float)
+    except Exception:  # noqa: BLE001 - envs may be unavailable where only the store is
+        return np.nanmean(path, axis=0)
+
+
 def _ideal_circle(arrays: dict[str, np.ndarray], i: int, path: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(centre, ideal xy points relative to it or None)."""
     ideal = _row(arrays, "ideal_tip", i)
     centre = _row(arrays, "center", i)
     radius = _row(arrays, "radius", i)
     if centre is None:
-        centre = np.nanmean(ideal, axis=0) if ideal is not None else np.nanmean(path, axis=0)
+        centre = np.nanmean(ideal, axis=0) if ideal is not None else _default_circle_centre(path)
     if ideal is not None:
         return centre, (ideal - centre)[:, :2]
     if radius is not None:
@@ -252,7 +263,7 @@ def compute_time(study: Study, folder: Path) -> FigureResult:
     ax.set_xticks(np.arange(len(tasks)), tasks)
     ax.set_xlabel("task")
     ax.set_ylabel("wall time per trajectory (s, log scale)")
-    ax.set_title(f"{title}\n{'; '.join(notes) or 'no paired STM/IK numbers'} "
+    ax.set_title(f"{title} (mean ± std over runs of all variants)\n{'; '.join(notes) or 'no paired STM/IK numbers'} "
                  f"(paper: STM ≈ {paper.STM_SPEEDUP_OVER_IK:g}x faster on circles)", fontsize=10)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     ax.grid(axis="y", which="both", alpha=0.3)
@@ -344,7 +355,6 @@ def tip_paths(study: Study, folder: Path) -> FigureResult:
         ax = fig.add_subplot(rows, cols, k + 1, projection="3d")
         ax.set_title(paper.task_label(t))
         _set_3d_labels(ax)
-        drew = False
         for v in variants:
             rep = reps[(t, v)]
             if rep is None:
@@ -359,13 +369,17 @@ def tip_paths(study: Study, folder: Path) -> FigureResult:
                 ax.scatter(*p[0], color=color, marker="o", s=10)
                 goal = _row(arrays, "goal", i)
                 if goal is not None:
-                    ax.scatter(*goal, color=color, marker="*", s=60, edgecolor="black", linewidth=0.4,
-                               label="goal" if (i == 0 and not drew) else None)
-                    drew = True
+                    ax.scatter(*goal, color=color, marker="*", s=60, edgecolor="black", linewidth=0.4)
         if all(reps[(t, v)] is None for v in variants):
             mark_gap(ax, "no rollouts logged")
-        else:
-            ax.legend(loc="upper left", fontsize=7)
+    # one legend for the figure: a line per variant that has any rollouts, plus the markers
+    drawn = [v for v in variants if any(reps[(t, v)] is not None for t in tasks)]
+    handles = [matplotlib.lines.Line2D([], [], color=variant_color(v, variants), label=paper.variant_label(v))
+               for v in drawn]
+    handles += [matplotlib.lines.Line2D([], [], ls="", marker="o", color="gray", label="start"),
+                matplotlib.lines.Line2D([], [], ls="", marker="*", ms=10, color="gray", markeredgecolor="black",
+                                        label="goal (same colour as its path)")]
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles))
     fig.suptitle(f"{title}: first {EPISODES_PER_PANEL} episodes of the first seed (o start, * goal) — {study.name}")
     return save(fig, folder, name, title, missing)
 
@@ -483,8 +497,12 @@ def sweep_params(study: Study, folder: Path) -> FigureResult:
         [c for c in df.columns if c.startswith("params.") and df[c].nunique(dropna=True) > 1]
     if found is None or not params:
         return gap(name, title, "no objective or no varied params among the trials")
-    fig, axes = plt.subplots(1, len(params), figsize=(3.4 * len(params), 3.4), squeeze=False)
-    for ax, p in zip(axes[0], params, strict=True):
+    cols = min(3, len(params))
+    rows = math.ceil(len(params) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.3 * rows), squeeze=False)
+    for ax in axes.flat[len(params):]:
+        ax.set_axis_off()
+    for ax, p in zip(axes.flat, params, strict=False):
         vals = pd.to_numeric(df[p], errors="coerce")
         if vals.isna().any():  # categorical: positions by sorted category
             cats = sorted(df[p].dropna().astype(str).unique())

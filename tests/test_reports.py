@@ -39,7 +39,7 @@ def _rollouts(rng: np.random.Generator, task: str, b: int = 3, h: int = 12) -> d
         arrays["switch_step"] = np.full(b, h // 2)
         arrays["expert_tip"] = start + t * (arrays["new_goal"][:, None] - start)
     if task == "circle":
-        radius = np.array([0.05, 0.10, 0.05])[:b]
+        radius = np.resize([0.05, 0.10, 0.05], b)
         ang = np.linspace(0, 2 * np.pi, h + 1)
         center = np.tile([0.6, 0.0, 0.1], (b, 1))
         arrays["tip"] = center[:, None] + radius[:, None, None] * 1.05 * np.stack(
@@ -60,7 +60,9 @@ def _child(client, exp, parent, task, variant, seed, metrics, status="FINISHED",
     for name, content in (artifacts or {}).items():
         path = Path(tmp) / rid / name
         path.parent.mkdir(parents=True, exist_ok=True)
-        if name.endswith(".npz"):
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        elif name.endswith(".npz"):
             np.savez_compressed(path, **content)
         else:
             path.write_text(json.dumps(content))
@@ -75,10 +77,11 @@ def store(tmp_path_factory):
     uri = f"sqlite:///{tmp / 'mlflow.db'}"
     client = MlflowClient(uri)
     exp = client.create_experiment("ablation", artifact_location=(tmp / "artifacts").as_uri())
-    # An older study without any artifacts (must still build, with gaps).
+    # An older study without usable artifacts (a corrupt npz): it must still build, with gaps.
     old = client.create_run(exp, tags={"kind": "ablation", "profile": "smoke", "study_name": "old-study"})
     _child(client, exp, old.info.run_id, "reacher", "lstm", 0,
-           {"reacher/success_rate": 0.5, "reacher/n_rollouts": 4})
+           {"reacher/success_rate": 0.5, "reacher/n_rollouts": 4},
+           artifacts={"reacher.npz": b"not an npz file"}, tmp=tmp)
     client.set_terminated(old.info.run_id)
     parent = client.create_run(exp, tags={"kind": "ablation", "profile": "smoke", "study_name": "test-study"})
     pid = parent.info.run_id
@@ -209,9 +212,14 @@ def test_study_without_artifacts_marks_figure_gaps(store, tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--experiment", "nope"], "unknown experiment 'nope'"),
     (["--study", "0123abc"], "unknown study '0123abc'"),
+    (["--bogus"], "unrecognized arguments: --bogus"),
 ])
 def test_unknown_selection_is_one_line_exit_2(store, args, message, capsys, tmp_path):
-    assert main(["--tracking-uri", store["uri"], "--out", str(tmp_path), *args]) == 2
+    try:
+        code = main(["--tracking-uri", store["uri"], "--out", str(tmp_path), *args])
+    except SystemExit as exit_:  # argparse's exit
+        code = exit_.code
+    assert code == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err
 
@@ -228,3 +236,45 @@ def test_empty_or_missing_store_is_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("reports: error: no studies") and "\n" not in err
 
+
+
+@pytest.mark.bench
+def test_bench_quick_sized_report(tmp_path, benchmark):
+    """Regeneration time of a report the size of a quick-profile study (3 tasks x 4 variants x 2 seeds, 50
+    rollouts per evaluated task, a 20-trial sweep), as `python -m reports` in a fresh process."""
+    import subprocess
+    import sys
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(uri)
+    exp = client.create_experiment("ablation", artifact_location=(tmp_path / "art").as_uri())
+    pid = client.create_run(exp, tags={"kind": "ablation", "profile": "quick", "study_name": "quick"}).info.run_id
+    rng = np.random.default_rng(1)
+    evals = {"reacher": ("reacher", "reacher-changing-goal"),
+             "pick-place": ("pick-place", "stack", "pick-place-changing-goal"), "circle": ("circle",)}
+    for task, tasks in evals.items():
+        for v in ("lstm", "ac-lstm", "lstm-mdn", "ac-lstm-mdn"):
+            for s in SEEDS:
+                metrics = {f"{e}/{k}": val for e in tasks if e != "circle"
+                           for k, val in (("success_rate", rng.uniform()), ("n_rollouts", 50))}
+                metrics |= {f"circle/r{r:g}/radial_rmse": rng.uniform(0, 0.05) for r in (5, 7.5, 10, 12.5, 15)}
+                metrics |= {"time/train_seconds": 60.0, "time/generation_seconds_per_traj": 0.02,
+                            "time/ik_seconds_per_traj": 0.05}
+                arts = {f"{e}.npz": _rollouts(rng, e, b=50, h=170) for e in tasks}
+                _child(client, exp, pid, task, v, s, metrics, artifacts=arts, tmp=tmp_path)
+    client.set_terminated(pid)
+    sexp = client.create_experiment("sweep", artifact_location=(tmp_path / "sweep").as_uri())
+    sp = client.create_run(sexp, tags={"kind": "sweep", "profile": "quick", "study_name": "quick-sweep"})
+    for trial in range(20):
+        rid = _child(client, sexp, sp.info.run_id, "reacher", "ac-lstm-mdn", 0, {"objective": rng.uniform()},
+                     params={"trial.m": int(rng.integers(1, 20)), "trial.u": int(rng.integers(1, 10))},
+                     extra_tags={"trial": str(trial), "trial_state": "COMPLETE"})
+        client.log_batch(rid, metrics=[Metric("val/metric", rng.uniform(), 0, i * 50) for i in range(6)])
+    client.set_terminated(sp.info.run_id)
+
+    def regenerate():
+        subprocess.run([sys.executable, "-m", "reports", "--tracking-uri", uri, "--out", str(tmp_path / "out")],
+                       check=True, capture_output=True)
+
+    benchmark.pedantic(regenerate, rounds=2, iterations=1)
+    assert (tmp_path / "out" / "quick" / "tip_paths.png").exists()
