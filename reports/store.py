@@ -77,7 +77,9 @@ class Study:
     parent: dict[str, Any]
     children: pd.DataFrame
     client: Any = field(repr=False)
-    _cache_dir: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="reports-")), repr=False)
+    # downloaded artifacts live as long as the Study (removed when it is garbage-collected)
+    _tmp: tempfile.TemporaryDirectory = field(
+        default_factory=lambda: tempfile.TemporaryDirectory(prefix="reports-"), repr=False)
     _artifacts: dict[str, set[str]] = field(default_factory=dict, repr=False)
     _frames: dict[str, pd.DataFrame] = field(default_factory=dict, repr=False)
 
@@ -183,7 +185,7 @@ class Study:
     def _download(self, run_id: str, path: str) -> Path | None:
         if path not in self.artifact_paths(run_id, str(Path(path).parent)):
             return None
-        dst = self._cache_dir / run_id
+        dst = Path(self._tmp.name) / run_id
         local = dst / path
         if not local.exists():
             dst.mkdir(parents=True, exist_ok=True)
