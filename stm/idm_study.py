@@ -42,6 +42,9 @@ class IDMStudyConfig:
     data: ExplorationConfig = field(default_factory=ExplorationConfig)
     idm: IDMConfig = field(default_factory=IDMConfig)
     real_seed: int = 1  # draw of the perturbed "real" dynamics
+    real_mass: float = 0.2  # link masses (and inertias) x U(1 - real_mass, 1 + real_mass)
+    real_damping: tuple[float, float] = (0.5, 1.5)  # joint damping x U(range)
+    real_friction: tuple[float, float] = (0.5, 1.5)  # joint friction x U(range)
     real_episodes: int = 10  # episodes of fine-tuning data collected on the perturbed robot
     finetune_epochs: int = 20
     finetune_lr: float = 3e-4
@@ -150,11 +153,12 @@ def measure_latency(model: InverseDynamicsMDN, repeats: int = 2000) -> dict[str,
 
 def idm_study(cfg: IDMStudyConfig = IDMStudyConfig(), plans: np.ndarray | None = None, goals: np.ndarray | None = None,
               cache_dir: str | Path = DEFAULT_CACHE_DIR, out_dir: str | Path | None = None,
-              progress: bool | None = None) -> dict:
+              progress: bool | None = None, sim_model: InverseDynamicsMDN | None = None) -> dict:
     """Run the study; returns a flat metrics dict ('<condition>/<metric>', data hashes,
     NLLs, timings, latency). Plans (B, T+1, 7) and goals (B, 3) default to the reacher
-    expert's plans to the four goals. With `out_dir`: the tracking figure (PNG + PDF)
-    and the two IDM checkpoints, listed under 'figures' and 'artifacts'."""
+    expert's plans to the four goals. `sim_model`: an IDM already trained in
+    simulation (skips data and training). With `out_dir`: the tracking figure
+    (PNG + PDF) and the two IDM checkpoints, listed under 'figures' and 'artifacts'."""
     from stm.plans import FOUR_GOALS, straight_line_plans
 
     threads = torch.get_num_threads()
@@ -175,17 +179,18 @@ def idm_study(cfg: IDMStudyConfig = IDMStudyConfig(), plans: np.ndarray | None =
         rows = [position_metrics(pt, plan, g) for pt, plan, g in zip(position_tips, plans, goals, strict=True)]
         res.update({f"position/{k}": v for k, v in _mean_rows(rows).items()})
 
-        t0 = time.perf_counter()
-        data = load_or_collect(cfg.data, cache_dir, progress)
-        t1 = time.perf_counter()
-        sim_model, hist = train_idm(data, cfg.idm, progress=progress)
-        t2 = time.perf_counter()
-        res.update({"data_hash": data.config_hash, "data_samples": len(data), "data_seconds": t1 - t0,
-                    "train_seconds": t2 - t1, "train_nll": hist["train_nll"][-1],
-                    "val_nll": hist["val_nll"][-1] if hist["val_nll"] else float("nan")})
+        if sim_model is None:
+            t0 = time.perf_counter()
+            data = load_or_collect(cfg.data, cache_dir, progress)
+            t1 = time.perf_counter()
+            sim_model, hist = train_idm(data, cfg.idm, progress=progress)
+            t2 = time.perf_counter()
+            res.update({"data_hash": data.config_hash, "data_samples": len(data), "data_seconds": t1 - t0,
+                        "train_seconds": t2 - t1, "train_nll": hist["train_nll"][-1],
+                        "val_nll": hist["val_nll"][-1] if hist["val_nll"] else float("nan")})
 
         nominal = cfg.data.dynamics
-        real_dyn = nominal.perturbed(cfg.real_seed)
+        real_dyn = nominal.perturbed(cfg.real_seed, cfg.real_mass, cfg.real_damping, cfg.real_friction)
         res["real_dynamics"] = real_dyn.as_dict()
         trackings: dict[str, list[Tracking]] = {}
         with TorqueWorld(nominal, cfg.data.physics_step, cfg.data.control_period) as world:
@@ -195,9 +200,9 @@ def idm_study(cfg: IDMStudyConfig = IDMStudyConfig(), plans: np.ndarray | None =
         real_cfg = replace(cfg.data, dynamics=real_dyn, episodes=cfg.real_episodes, seed=cfg.data.seed + 1000)
         real_data = load_or_collect(real_cfg, cache_dir, progress)
         res.update({"real_data_hash": real_data.config_hash, "real_data_samples": len(real_data)})
-        ft_model = InverseDynamicsMDN(cfg.idm)
+        ft_model = InverseDynamicsMDN(sim_model.cfg)
         ft_model.load_state_dict(sim_model.state_dict())
-        ft_cfg = replace(cfg.idm, epochs=cfg.finetune_epochs, lr=cfg.finetune_lr)
+        ft_cfg = replace(sim_model.cfg, epochs=cfg.finetune_epochs, lr=cfg.finetune_lr, seed=cfg.idm.seed)
         ft_model, ft_hist = train_idm(real_data, ft_cfg, model=ft_model, progress=progress)
         res["finetune_val_nll"] = ft_hist["val_nll"][-1] if ft_hist["val_nll"] else float("nan")
         models = {"real_sim_idm": sim_model, "real_finetuned": ft_model}
@@ -241,6 +246,9 @@ def plot_tracking(trackings: dict[str, list[Tracking]], plans: np.ndarray, posit
         ax.plot(t_plan, position_tips[index][:, d], "o", color="0.5", ms=3, label="position control")
         for i, (name, trs) in enumerate(trackings.items()):
             ax.plot(trs[index].times, trs[index].tip[:, d], color=f"C{i}", lw=1.2, label=labels.get(name, name))
+        lo, hi = plan_tip[:, d].min(), plan_tip[:, d].max()
+        pad = max(0.03, 0.2 * (hi - lo))
+        ax.set_ylim(lo - pad, hi + pad)  # a diverging run leaves the frame instead of flattening the rest
         ax.set_xlabel("time [s]")
         ax.set_ylabel(f"tip {'xyz'[d]} [m]")
     ax = axes[3]  # the differences are mm on a 30 cm motion: show the error itself
@@ -249,6 +257,7 @@ def plot_tracking(trackings: dict[str, list[Tracking]], plans: np.ndarray, posit
     for i, trs in enumerate(trackings.values()):
         ax.plot(trs[index].times, 1e3 * np.linalg.norm(trs[index].tip - plan_tip, axis=-1), color=f"C{i}", lw=1.2)
     ax.set_xlabel("time [s]")
+    ax.set_yscale("symlog", linthresh=0.1)
     ax.set_ylabel("tip error to plan [mm]")
     axes[0].legend(fontsize=7)
     fig.suptitle("Tool-tip tracking: plan vs IDM torque control")
