@@ -58,8 +58,9 @@ class BlockState:
 
 
 class BlockWorld:
-    """A Scene with grasp-tuned fingers and any number of blocks; reusable across
-    episodes (clear() removes the blocks, the robot is reset by Scene.play)."""
+    """A Scene with grasp-tuned, coupled fingers and any number of blocks. The tasks
+    build a fresh one per episode (about 30 ms) so that results do not depend on what
+    ran before in the same pybullet world; clear() removes the blocks."""
 
     def __init__(self, scene: Scene | None = None):
         self.scene = scene or Scene(table=True)
