@@ -46,6 +46,9 @@ def _as_numpy(x) -> np.ndarray:
 def _check_skeleton(skeleton) -> None:
     if skeleton.ndim != 3 or skeleton.shape[-1] != 7 or skeleton.shape[1] < 2:
         raise ValueError(f"skeleton must have shape (B, T+1, 7) with T >= 1, got {tuple(skeleton.shape)}")
+    finite = torch.isfinite(skeleton).all() if isinstance(skeleton, torch.Tensor) else np.isfinite(skeleton).all()
+    if not bool(finite):
+        raise ValueError("skeleton contains NaN or infinite joint values")
 
 
 def smoothing_objective(q: torch.Tensor, skeleton: torch.Tensor, gamma: float, goal: torch.Tensor | None = None,
@@ -174,7 +177,7 @@ def smoothness_metrics(q, skeleton=None, goal=None, step_seconds: float = 0.1, r
 
 def smoothing_study(skeletons=None, goals=None, *, gamma: float = 5.0, goal_weight: float = 50.0,
                     iters: int = 300, step_seconds: float = 0.1, seed: int = 0, steps: int = 60,
-                    out_dir: str | Path | None = None) -> dict:
+                    out_dir: str | Path | None = None, torch_threads: int = 1) -> dict:
     """Smooth skeletons (B, T+1, 7) reaching `goals` (B, 3) three ways (exact quadratic,
     gradient descent, gradient descent with the goal term) and measure them.
 
@@ -190,15 +193,20 @@ def smoothing_study(skeletons=None, goals=None, *, gamma: float = 5.0, goal_weig
         goals = FOUR_GOALS if goals is None else np.asarray(goals, dtype=float)
         skeletons = jittery_skeletons(straight_line_plans(goals, steps=steps), seed=seed)
     skeletons = np.asarray(skeletons, dtype=float)
-    t0 = time.perf_counter()
-    exact = smooth_exact(skeletons, gamma)
-    t1 = time.perf_counter()
-    gd = smooth_gd(skeletons, gamma, iters=iters)
-    t2 = time.perf_counter()
-    gd_goal = None
-    if goals is not None:
-        gd_goal = smooth_gd(skeletons, gamma, goal=goals, goal_weight=goal_weight, iters=iters)
-    t3 = time.perf_counter()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(torch_threads)  # small tensors: more threads only add hand-off waits
+    try:
+        t0 = time.perf_counter()
+        exact = smooth_exact(skeletons, gamma)
+        t1 = time.perf_counter()
+        gd = smooth_gd(skeletons, gamma, iters=iters)
+        t2 = time.perf_counter()
+        gd_goal = None
+        if goals is not None:
+            gd_goal = smooth_gd(skeletons, gamma, goal=goals, goal_weight=goal_weight, iters=iters)
+        t3 = time.perf_counter()
+    finally:
+        torch.set_num_threads(threads)
     results: dict = {"gamma": gamma, "goal_weight": goal_weight, "n_trajectories": len(skeletons),
                      "steps": skeletons.shape[1] - 1, "time_exact_s": t1 - t0, "time_gd_s": t2 - t1}
     variants = {"skeleton": skeletons, "exact": exact, "gd": gd}

@@ -64,6 +64,8 @@ def test_metrics_on_known_signals():
 def test_bad_shapes_raise_clear_errors():
     with pytest.raises(ValueError, match="shape"):
         smooth_exact(np.zeros((5, 7)))
+    with pytest.raises(ValueError, match="NaN"):
+        smooth_gd(np.full((1, 4, 7), np.nan))
     with pytest.raises(ValueError, match="gamma"):
         smooth_gd(np.zeros((1, 4, 7)), gamma=-1.0)
 
