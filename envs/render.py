@@ -17,6 +17,7 @@ from envs.sim import TABLE_CENTER_XY, TABLE_HALF_EXTENTS, TABLE_TOP_Z  # noqa: E
 from envs.tasks.base import Demos, Task  # noqa: E402
 
 MAX_PATHS = 50  # more paths than this turn into a blur; the title says how many are shown
+MAX_PATHS_WITH_BLOCKS = 12  # each path of a block task also draws its goal's blocks
 
 
 def _cube_faces(bottom_centre, size: float) -> list[np.ndarray]:
@@ -69,7 +70,9 @@ def render_task(task: Task, demos: Demos | None, out: Path, n_episodes: int = 6)
         paths, psis = _paths_from_episodes(task, n_episodes)
         what = f"expert on {len(paths)} evaluation episodes"
     total = len(paths)
-    shown = np.linspace(0, total - 1, min(total, MAX_PATHS)).round().astype(int)
+    block = _block_size(task)
+    limit = MAX_PATHS_WITH_BLOCKS if block else MAX_PATHS
+    shown = np.linspace(0, total - 1, min(total, limit)).round().astype(int)
     if len(shown) < total:
         what += f" ({len(shown)} shown)"
 
@@ -78,7 +81,6 @@ def render_task(task: Task, demos: Demos | None, out: Path, n_episodes: int = 6)
     colors = plt.cm.viridis(np.linspace(0, 1, len(shown)))
     pts = [np.zeros((1, 3))]
     goals_drawn = switched_drawn = False
-    block = _block_size(task)
     for c, i in zip(colors, shown, strict=True):
         p = paths[i]
         ax.plot(p[:, 0], p[:, 1], p[:, 2], color=c, lw=1.0, alpha=0.85)
