@@ -40,7 +40,6 @@ from stm.torque_sim import CONTROL_PERIOD, PHYSICS_STEP, STATE_DIM, JointDynamic
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1  # bump when the file layout or the collection code changes meaning
-DEFAULT_CACHE_DIR = Path(os.environ.get("ACRMDN_CACHE", ".cache")) / "idm"
 HISTORY = 2  # H: previous states and actions fed to the IDM
 FEATURE_DIM = STATE_DIM * (2 + HISTORY) + 7 * HISTORY  # 70
 
@@ -175,8 +174,15 @@ def _is_tty() -> bool:
 
 # cache --------------------------------------------------------------------------
 
-def cache_path(cfg: ExplorationConfig, cache_dir: str | Path = DEFAULT_CACHE_DIR) -> Path:
-    return Path(cache_dir) / f"idm_data_{cfg.config_hash()}.npz"
+def default_cache_dir() -> Path:
+    """The project's dataset cache (envs.datasets: ACRMDN_CACHE, else ~/.cache/acrmdn) / idm."""
+    from envs.datasets import default_cache_dir as datasets_cache_dir
+
+    return datasets_cache_dir() / "idm"
+
+
+def cache_path(cfg: ExplorationConfig, cache_dir: str | Path | None = None) -> Path:
+    return Path(cache_dir if cache_dir is not None else default_cache_dir()) / f"idm_data_{cfg.config_hash()}.npz"
 
 
 def save(data: IDMData, cfg: ExplorationConfig, path: str | Path) -> None:
@@ -208,7 +214,7 @@ def load(cfg: ExplorationConfig, path: str | Path) -> IDMData:
     return IDMData(states, actions, cfg.config_hash())
 
 
-def load_or_collect(cfg: ExplorationConfig, cache_dir: str | Path = DEFAULT_CACHE_DIR,
+def load_or_collect(cfg: ExplorationConfig, cache_dir: str | Path | None = None,
                     progress: bool | None = None) -> IDMData:
     """The dataset for cfg: from the cache when valid; a corrupt or stale file gets one
     warning and is rebuilt."""

@@ -28,7 +28,7 @@ import torch
 from envs.kinematics import tip_position_np
 from envs.sim import Scene
 from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, Tracking, save_idm, track_plan, train_idm
-from stm.idm_data import DEFAULT_CACHE_DIR, ExplorationConfig, idm_features, load_or_collect
+from stm.idm_data import ExplorationConfig, idm_features, load_or_collect
 from stm.smoothing import smooth_gd
 from stm.torque_sim import TorqueWorld
 
@@ -152,7 +152,7 @@ def measure_latency(model: InverseDynamicsMDN, repeats: int = 2000) -> dict[str,
 
 
 def idm_study(cfg: IDMStudyConfig = IDMStudyConfig(), plans: np.ndarray | None = None, goals: np.ndarray | None = None,
-              cache_dir: str | Path = DEFAULT_CACHE_DIR, out_dir: str | Path | None = None,
+              cache_dir: str | Path | None = None, out_dir: str | Path | None = None,
               progress: bool | None = None, sim_model: InverseDynamicsMDN | None = None) -> dict:
     """Run the study; returns a flat metrics dict ('<condition>/<metric>', data hashes,
     NLLs, timings, latency). Plans (B, T+1, 7) and goals (B, 3) default to the reacher
