@@ -10,9 +10,9 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from reports import figures, tables
-from reports.figures import FigureResult
+from reports import figures, sweeps, tables, trajectories
 from reports.html import study_index
+from reports.plotting import FigureResult
 from reports.store import Study
 from reports.tables import Table
 
@@ -53,20 +53,20 @@ def _ablation_parts(study: Study, folder: Path) -> tuple[list[Table], list[Figur
     tabs = [tables.success_table(success, study), tables.circle_table(circle, study),
             tables.train_time_table(train, study), tables.generic_metrics_table(study)]
     figs = [_figure("success_bars", lambda: figures.success_bars(success, study, folder)),
-            _figure("circles", lambda: figures.circles(study, folder)),
+            _figure("circles", lambda: trajectories.circles(study, folder)),
             _figure("compute_time", lambda: figures.compute_time(study, folder)),
             _figure("train_time", lambda: figures.train_time(train, study, folder)),
             _figure("training_curves", lambda: figures.training_curves(study, folder)),
-            _figure("tip_paths", lambda: figures.tip_paths(study, folder)),
-            _figure("changing_goal", lambda: figures.changing_goal(study, folder))]
+            _figure("tip_paths", lambda: trajectories.tip_paths(study, folder)),
+            _figure("changing_goal", lambda: trajectories.changing_goal(study, folder))]
     return tabs, figs
 
 
 def _sweep_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureResult]]:
     tabs = [tables.generic_metrics_table(study)]
-    figs = [_figure("sweep_history", lambda: figures.sweep_history(study, folder)),
-            _figure("sweep_params", lambda: figures.sweep_params(study, folder)),
-            _figure("sweep_intermediate", lambda: figures.sweep_intermediate(study, folder))]
+    figs = [_figure("sweep_history", lambda: sweeps.sweep_history(study, folder)),
+            _figure("sweep_params", lambda: sweeps.sweep_params(study, folder)),
+            _figure("sweep_intermediate", lambda: sweeps.sweep_intermediate(study, folder))]
     return tabs, figs
 
 

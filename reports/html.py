@@ -5,7 +5,7 @@ from __future__ import annotations
 import html
 from pathlib import Path
 
-from reports.figures import FigureResult
+from reports.plotting import FigureResult
 from reports.store import Study
 from reports.tables import TABLE_CSS, Table
 

@@ -1,0 +1,58 @@
+"""Figure plumbing shared by the report's figure modules: matplotlib set-up (files only), the result of a
+figure (paths or the gap that replaced it), colours per variant, saving as PNG + PDF, gap panels."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; never a window
+import matplotlib.pyplot as plt  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+plt.rcParams.update({"font.size": 10, "axes.titlesize": 11, "figure.titlesize": 12, "legend.fontsize": 8,
+                     "savefig.dpi": 150, "savefig.bbox": "tight", "figure.constrained_layout.use": True})
+
+
+@dataclass
+class FigureResult:
+    """A figure of the report: its PNG + PDF paths, or the gap (reason) that replaced it."""
+
+    name: str
+    title: str
+    paths: list[Path] = field(default_factory=list)
+    gap: str | None = None  # why the figure (or part of it) is missing
+    partial: list[str] = field(default_factory=list)  # panels drawn as gaps
+
+
+def variant_color(variant: str, variants: list[str]) -> tuple:
+    cmap = plt.get_cmap("tab10")
+    return cmap(variants.index(variant) % 10 if variant in variants else 9)
+
+
+def save(fig, folder: Path, name: str, title: str, partial: list[str] | None = None) -> FigureResult:
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = [folder / f"{name}.png", folder / f"{name}.pdf"]
+    for p in paths:
+        fig.savefig(p)
+    plt.close(fig)
+    return FigureResult(name, title, paths, partial=partial or [])
+
+
+def gap(name: str, title: str, reason: str) -> FigureResult:
+    log.info("figure %s is a gap: %s", name, reason)
+    return FigureResult(name, title, gap=reason)
+
+
+def mark_gap(ax, text: str) -> None:
+    """An empty panel that says what is missing."""
+    kw = dict(ha="center", va="center", color="#900", fontsize=9, wrap=True)
+    if hasattr(ax, "text2D"):  # 3D panel: no empty box around the message
+        ax.set_axis_off()
+        ax.text2D(0.5, 0.5, f"gap: {text}", transform=ax.transAxes, **kw)
+    else:
+        ax.text(0.5, 0.5, f"gap: {text}", transform=ax.transAxes, **kw)

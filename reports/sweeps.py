@@ -1,0 +1,131 @@
+"""Figures of an Optuna sweep tracked in MLflow: objective per trial, objective vs each sampled value,
+intermediate values (the pruning signal) per trial."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib.ticker
+import numpy as np
+import pandas as pd
+
+from reports.plotting import FigureResult, gap, plt, save
+from reports.store import Study
+
+
+def _objective(study: Study) -> tuple[str, pd.Series] | None:
+    for col in ("metrics.objective", "metrics.val/metric"):
+        if col in study.children.columns and study.children[col].notna().any():
+            return col.removeprefix("metrics."), study.children[col]
+    return None
+
+
+def _sweep_frame(study: Study) -> pd.DataFrame:
+    ch = study.children.copy()
+    found = _objective(study)
+    ch["objective"] = found[1] if found else np.nan
+    if "metrics.val/metric" in ch:  # pruned trials have no objective: show their last intermediate value
+        ch["objective"] = ch["objective"].fillna(ch["metrics.val/metric"])
+    ch["trial_no"] = ch["trial"].fillna(pd.Series(range(len(ch)), index=ch.index, dtype="Int64"))
+    state = ch["trial_state"].fillna(ch["status"])  # MLflow status when the trial tag is missing
+    ch["trial_state"] = state.replace({"FINISHED": "COMPLETE", "FAILED": "FAIL", "KILLED": "PRUNED"})
+    return ch.sort_values("trial_no")
+
+
+OBJECTIVE_LABELS = {"val": "validation metric", "final_distance": "final distance to goal (m)"}
+
+
+def _objective_label(study: Study, metric: str) -> str:
+    """What the objective measures, from the sweep parent's param sweep.objective where logged."""
+    kind = study.parent.get("params.sweep.objective")
+    return f"objective: {OBJECTIVE_LABELS.get(kind, kind)}" if kind else metric
+
+
+def _direction(study: Study) -> str:
+    d = study.parent.get("tags.direction") or study.parent.get("params.direction") or "minimize"
+    return "maximize" if str(d).lower().startswith("max") else "minimize"
+
+
+def sweep_history(study: Study, folder: Path) -> FigureResult:
+    name, title = "sweep_history", "Sweep: objective per trial"
+    found = _objective(study)
+    if found is None:
+        return gap(name, title, "no trial logged 'objective' or 'val/metric'")
+    df = _sweep_frame(study)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for state, marker, color in (("COMPLETE", "o", "tab:blue"), ("PRUNED", "s", "tab:gray"), ("FAIL", "x", "tab:red")):
+        part = df[df["trial_state"] == state]
+        if len(part):
+            ax.scatter(part["trial_no"], part["objective"], marker=marker, color=color,
+                       label="pruned (last intermediate value)" if state == "PRUNED" else state.lower())
+    done = df[df["trial_state"] == "COMPLETE"].dropna(subset=["objective"])
+    if len(done):
+        best = done["objective"].cummin() if _direction(study) == "minimize" else done["objective"].cummax()
+        ax.step(done["trial_no"], best, where="post", color="black", lw=1.2, label="best so far")
+    ax.set_xlabel("trial number")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    ax.set_ylabel(f"{_objective_label(study, found[0])} ({_direction(study)}d)")
+    ax.set_title(f"{title} — {study.name}")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    return save(fig, folder, name, title)
+
+
+def sweep_params(study: Study, folder: Path) -> FigureResult:
+    name, title = "sweep_params", "Sweep: objective vs each hyperparameter"
+    found = _objective(study)
+    df = _sweep_frame(study)
+    # the sampled values (params trial.<name>); without them every param that varies between trials
+    params = [c for c in df.columns if c.startswith("params.trial.") and df[c].nunique(dropna=True) > 1] or \
+        [c for c in df.columns if c.startswith("params.") and df[c].nunique(dropna=True) > 1]
+    if found is None or not params:
+        return gap(name, title, "no objective or no varied params among the trials")
+    cols = min(3, len(params))
+    rows = math.ceil(len(params) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.3 * rows), squeeze=False)
+    for ax in axes.flat[len(params):]:
+        ax.set_axis_off()
+    for ax, p in zip(axes.flat, params, strict=False):
+        vals = pd.to_numeric(df[p], errors="coerce")
+        if vals.isna().any():  # categorical: positions by sorted category
+            cats = sorted(df[p].dropna().astype(str).unique())
+            vals = df[p].astype(str).map({c: i for i, c in enumerate(cats)})
+            ax.set_xticks(range(len(cats)), cats, rotation=30)
+        colors = df["trial_state"].map({"COMPLETE": "tab:blue", "PRUNED": "tab:gray"}).fillna("tab:red")
+        ax.scatter(vals, df["objective"], c=list(colors))
+        ax.set_xlabel(p.removeprefix("params.").removeprefix("trial."))
+        ax.set_ylabel(_objective_label(study, found[0]))
+        ax.grid(alpha=0.3)
+    axes[0][0].scatter([], [], c="tab:blue", label="complete")
+    axes[0][0].scatter([], [], c="tab:gray", label="pruned")
+    axes[0][0].legend()
+    fig.suptitle(f"{title} — {study.name}")
+    return save(fig, folder, name, title)
+
+
+def sweep_intermediate(study: Study, folder: Path, metric: str = "val/metric") -> FigureResult:
+    name, title = "sweep_intermediate", f"Sweep: intermediate {metric} per trial (pruning)"
+    df = _sweep_frame(study)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    drew = False
+    for row in df.itertuples():
+        h = study.metric_history(row.run_id, metric)
+        if h.empty:
+            continue
+        pruned = row.trial_state == "PRUNED"
+        ax.plot(h["step"], h["value"], color="tab:gray" if pruned else "tab:blue", lw=0.8,
+                alpha=0.6 if pruned else 0.9, marker=".", ms=3)
+        drew = True
+    if not drew:
+        plt.close(fig)
+        return gap(name, title, f"no trial logged {metric} history")
+    ax.plot([], [], color="tab:blue", label="complete")
+    ax.plot([], [], color="tab:gray", label="pruned")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(f"{metric} (lower is better)")
+    ax.set_title(f"{title} — {study.name}", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    return save(fig, folder, name, title)
+
