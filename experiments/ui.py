@@ -4,8 +4,11 @@ printed first (MLflow 3 opens an experiment on its GenAI overview, not on the ru
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import subprocess
 import sys
+import time
 
 from experiments.tracking import runs_page_url, sqlite_path, tracking_uri
 
@@ -43,7 +46,35 @@ def serve(host: str = "127.0.0.1", port: int = 5000) -> int:
     db = sqlite_path(uri)
     if db is not None:  # new experiments created through the UI keep artifacts beside the db
         cmd += ["--artifacts-destination", str(db.parent / "mlartifacts")]
+    # the server starts helper processes (uvicorn workers, job consumers): run it in its own
+    # process group and stop the whole group on Ctrl-C or SIGTERM, leaving nothing behind
+    proc = subprocess.Popen(cmd, start_new_session=True)
+
+    def stop(*_):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
     try:
-        return subprocess.call(cmd)
+        return proc.wait()
     except KeyboardInterrupt:
         return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        _stop_group(proc)
+
+
+def _stop_group(proc: subprocess.Popen, grace: float = 10.0) -> None:
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            return
+        deadline = time.monotonic() + grace
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(proc.pid, 0)  # anything left in the group?
+            except ProcessLookupError:
+                proc.poll()
+                return
+            proc.poll()
+            time.sleep(0.2)

@@ -132,10 +132,12 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
         buffer.add(iteration, {"val/metric": value})
         return False
 
+    log.info("cell %s: training %d iterations (from %d)", cell.key, train_cfg.iters, resumed_from)
     result = train(model_cfg, train_cfg, task, demos, checkpoint_path=ckpt_path, resume=True,
                    on_metrics=buffer.add, on_checkpoint=on_checkpoint, on_validation=on_validation,
                    progress=progress)
     buffer.flush()
+    log.info("cell %s: trained in %.0fs; evaluating on %s", cell.key, result.seconds, ", ".join(cell.eval_tasks))
     log_metrics(client, run_id, {"time/train_seconds": result.seconds, "train/iterations": result.iterations})
 
     metrics, details = evaluate_model(result.model, list(cell.eval_tasks), cell.eval, seed=cell.seed,

@@ -93,7 +93,8 @@ def test_rerun_skips_every_finished_cell(smoke_study):
 def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name", "killed",
-            "--set", "train.iters=60", "--set", "train.val_every=0", "--set", "eval.figures=0"]
+            "--set", "train.iters=30", "--set", "train.val_every=0", "--set", "eval.figures=0",
+            "--set", "eval.rollouts=2"]
     proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path, env=_env(tmp_path),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     run_id, deadline = None, time.monotonic() + 300
@@ -117,16 +118,16 @@ def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
     killed = client.get_run(run_id)
     assert killed.info.status == "RUNNING"
     killed_at = int(killed.data.tags["checkpoint_iteration"])
-    assert killed_at < 60
+    assert killed_at < 30
 
     done = _cli(args, tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     run = client.get_run(run_id)
     assert run.info.status == "FINISHED"
     assert int(run.data.tags["resumed_from_iteration"]) >= killed_at
-    assert run.data.metrics["train/iterations"] == 60
+    assert run.data.metrics["train/iterations"] == 30
     steps = [m.step for m in client.get_metric_history(run_id, "train/loss")]
-    assert steps == sorted(set(steps)) and steps[-1] == 60  # continued, nothing logged twice
+    assert steps == sorted(set(steps)) and steps[-1] == 30  # continued, nothing logged twice
     cells = client.search_runs([run.info.experiment_id], "tags.role = 'cell'")
     assert [r.info.run_id for r in cells] == [run_id]
 
@@ -182,3 +183,36 @@ def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
     study = optuna.load_study(study_name="reacher-ac-lstm-mdn-smoke", storage=storage)
     assert len(study.trials) == 5
     assert len(_children(client, exp.experiment_id, parent.info.run_id)) == 5
+
+
+def test_ui_serves_the_store_and_stops_cleanly(smoke_study):
+    import socket
+    import urllib.request
+
+    store, _ = smoke_study
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "experiments", "ui", "--port", str(port)], cwd=store,
+                            env=_env(store), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            start_new_session=True)
+    try:
+        first = [proc.stdout.readline() for _ in range(2)]
+        assert first[0].startswith("MLflow UI over sqlite:///")
+        assert f"ablation: http://127.0.0.1:{port}/#/experiments/" in first[1] and first[1].rstrip().endswith("/runs")
+        deadline, status = time.monotonic() + 120, None
+        while time.monotonic() < deadline and status != 200:
+            time.sleep(1)
+            try:
+                status = urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5).status
+            except OSError:
+                pass
+        assert status == 200
+        url = f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?experiment_name=ablation"
+        assert b'"ablation"' in urllib.request.urlopen(url, timeout=10).read()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    time.sleep(1)
+    leftovers = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
+    assert f"--port {port}" not in leftovers  # the server (started in its own group) is gone too
