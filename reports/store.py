@@ -31,6 +31,7 @@ import json
 import logging
 import os
 import re
+import sqlite3
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -263,11 +264,14 @@ class Store:
         os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # no bar per small download
         self.uri = uri or tracking_uri()
         path = _sqlite_path(self.uri)
-        if path is not None and not path.exists():
-            raise StoreError(f"no MLflow store at {self.uri} (run a study first, or set MLFLOW_TRACKING_URI)")
+        if path is not None:
+            _check_sqlite_store(path, self.uri)
         mlflow.set_tracking_uri(self.uri)  # mlflow.search_runs reads the global URI
         self._mlflow = mlflow
-        self.client = MlflowClient(self.uri)
+        try:
+            self.client = MlflowClient(self.uri)
+        except Exception as exc:  # noqa: BLE001 - e.g. an unreachable server
+            raise StoreError(f"cannot open the MLflow store at {self.uri}: {str(exc).splitlines()[0]}") from None
 
     def experiments(self) -> dict[str, str]:
         """name -> id of the experiments that hold at least one parent run."""
@@ -323,6 +327,23 @@ class Store:
         children = self._runs([parent["experiment_id"]], f"tags.`{PARENT_TAG}` = '{parent['run_id']}'")
         return Study(experiment=parent.get("experiment", ""), parent=_clean(parent),
                      children=_tidy_children(children), client=self.client)
+
+
+def _check_sqlite_store(path: Path, uri: str) -> None:
+    """An existing SQLite file with MLflow's tables, checked read-only: opening anything else with MLflow
+    would create or migrate tables in it."""
+    if not path.exists():
+        raise StoreError(f"no MLflow store at {uri} (run a study first, or set MLFLOW_TRACKING_URI)")
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        finally:
+            con.close()
+    except sqlite3.Error as exc:
+        raise StoreError(f"{path} is not an MLflow store ({exc})") from None
+    if not {"experiments", "runs"} <= tables:
+        raise StoreError(f"{path} is not an MLflow store (no experiments/runs tables)")
 
 
 def _clean(row: dict[str, Any]) -> dict[str, Any]:

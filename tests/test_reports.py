@@ -235,6 +235,12 @@ def test_empty_or_missing_store_is_one_line_exit_2(tmp_path, capsys):
     assert main(["--tracking-uri", empty, "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("reports: error: no studies") and "\n" not in err
+    for name, content in (("garbage.db", b"not a database at all"), ("zero.db", b"")):
+        (tmp_path / name).write_bytes(content)
+        assert main(["--tracking-uri", f"sqlite:///{tmp_path / name}", "--out", str(tmp_path)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "is not an MLflow store" in err and "\n" not in err
+        assert (tmp_path / name).read_bytes() == content  # left as it was
 
 
 
