@@ -146,9 +146,11 @@ def _block_size(task: Task) -> float | None:
 
 def _draw_goal_blocks(ax, goals: np.ndarray, size: float, color) -> None:
     """Blocks placed at the goals (psi is the position of a placed block's bottom face),
-    with the support blocks under a goal above the table in grey."""
+    with the support blocks under a goal above the table in grey. A goal that was
+    switched away from (another xy than the last goal) gets no block."""
     cubes: dict[tuple[float, float, int], bool] = {}
-    for g in goals:
+    final_xy = goals[-1, :2]
+    for g in goals[np.linalg.norm(goals[:, :2] - final_xy, axis=1) < 1e-6]:
         level = int(round((g[2] - TABLE_TOP_Z) / size))
         for k in range(level + 1):
             key = (round(float(g[0]), 4), round(float(g[1]), 4), k)
