@@ -12,7 +12,7 @@ Child metrics, per evaluated task E: `E/success_rate` (0..1), `E/success_ci_low`
 `time/generation_seconds_per_traj`, `time/generation_batched_seconds_per_traj`,
 `time/ik_seconds_per_traj`, `time/ik_batched_seconds_per_traj` (seconds per trajectory).
 Child artifact `rollouts/<E>.npz` (np.savez_compressed; metres, robot base frame), B episodes, horizon H:
-    tip (B, H+1, 3) REQUIRED measured tool-tip path from the pybullet playback;
+    tip (B, H+1, 3) REQUIRED tool-tip path of the rollout (measured in pybullet, or FK of the executed q);
     optional per episode: success (B,) 0/1 or NaN, final_distance (B,), goal (B, 3), new_goal (B, 3)
     (NaN if none), switch_step (B,) int (-1 if none), radius (B,) m, center (B, 3) m,
     ideal_tip (B, K, 3) ideal path (circle), expert_tip (B, Te+1, 3) the IK expert's direct path

@@ -95,7 +95,7 @@ def circles(study: Study, folder: Path) -> FigureResult:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
     missing = [v for v in variants if v not in reps]
-    fig.suptitle(f"{title} (measured tool tip, first seed) — {study.name}"
+    fig.suptitle(f"{title} (tool tip, first seed) — {study.name}"
                  + (f"; gap: {', '.join(missing)}" if missing else ""))
     return save(fig, folder, name, title, missing)
 
