@@ -120,13 +120,14 @@ def compute_time(study: Study, folder: Path) -> FigureResult:
     for t in tasks:
         stm, ik = stats["mean"].get((t, "stm_seconds_per_traj")), stats["mean"].get((t, "ik_seconds_per_traj"))
         if stm and ik and not (np.isnan(stm) or np.isnan(ik)):
-            notes.append(f"{t}: IK/STM = {ik / stm:.2f}x")
+            notes.append(f"{t} {ik / stm:.2f}x")
     ax.set_yscale("log")
     ax.set_xticks(np.arange(len(tasks)), tasks)
     ax.set_xlabel("task")
     ax.set_ylabel("wall time per trajectory (s, log scale)")
-    ax.set_title(f"{title} (mean ± std over runs of all variants)\n{'; '.join(notes) or 'no paired STM/IK numbers'} "
-                 f"(paper: STM ≈ {paper.STM_SPEEDUP_OVER_IK:g}x faster on circles)", fontsize=10)
+    speedup = f"STM speed-up over IK, one trajectory: {', '.join(notes)}" if notes else "no paired STM/IK numbers"
+    ax.set_title(f"{title} (mean ± std over runs of all variants)\n{speedup} "
+                 f"(paper: {paper.STM_SPEEDUP_OVER_IK:g}x on circles)", fontsize=10)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     ax.grid(axis="y", which="both", alpha=0.3)
     return save(fig, folder, name, title)
