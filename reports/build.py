@@ -79,6 +79,22 @@ def _clear(folder: Path) -> None:
                 p.unlink()
 
 
+def _log_report(study: Study, folder: Path) -> None:
+    """Copy the report to the parent run's artifacts under report/, replacing an earlier copy (only that
+    folder, which only this module writes) so that the copy matches the folder exactly."""
+    try:
+        from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+
+        repo = get_artifact_repository(study.client.get_run(study.run_id).info.artifact_uri)
+        try:
+            repo.delete_artifacts(ARTIFACT_PATH)
+        except NotImplementedError:  # some artifact stores cannot delete: files are then overwritten only
+            pass
+        study.client.log_artifacts(study.run_id, str(folder), ARTIFACT_PATH)
+    except Exception as exc:  # noqa: BLE001 - the files on disk are the report; the upload is a copy
+        log.warning("could not log the report as artifacts of run %s: %s", study.run_id, exc)
+
+
 def build_report(study: Study, out_root: Path, log_artifacts: bool = True) -> Report:
     start = time.perf_counter()
     folder = out_root / study.slug
@@ -91,8 +107,5 @@ def build_report(study: Study, out_root: Path, log_artifacts: bool = True) -> Re
     seconds = time.perf_counter() - start
     index = study_index(study, folder, tabs, figs, seconds)
     if log_artifacts:
-        try:
-            study.client.log_artifacts(study.run_id, str(folder), ARTIFACT_PATH)
-        except Exception as exc:  # noqa: BLE001 - the files on disk are the report; the upload is a copy
-            log.warning("could not log the report as artifacts of run %s: %s", study.run_id, exc)
+        _log_report(study, folder)
     return Report(study, folder, index, tabs, figs, time.perf_counter() - start)

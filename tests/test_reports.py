@@ -193,10 +193,12 @@ def test_report_is_logged_to_parent_and_rebuild_is_idempotent(store, built):
     listing = sorted(p.name for p in folder.iterdir())
     table = (folder / "success_table.csv").read_text()
     study = Store(store["uri"]).studies(study=store["parent"])[0]
-    again = build_report(study, built, log_artifacts=False)
+    again = build_report(study, built)
     assert again.folder == folder
     assert sorted(p.name for p in folder.iterdir()) == listing
     assert (folder / "success_table.csv").read_text() == table
+    logged = sorted(f.path.removeprefix("report/") for f in client.list_artifacts(store["parent"], "report"))
+    assert logged == listing  # the parent's copy is replaced, not accumulated
 
 
 def test_study_without_artifacts_marks_figure_gaps(store, tmp_path):
