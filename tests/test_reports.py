@@ -286,3 +286,22 @@ def test_bench_quick_sized_report(tmp_path, benchmark):
 
     benchmark.pedantic(regenerate, rounds=2, iterations=1)
     assert (tmp_path / "out" / "quick" / "tip_paths.png").exists()
+
+
+def test_curve_band_over_seeds_with_missing_steps():
+    import pandas as pd
+
+    from reports.stats import curve_band
+    a = pd.DataFrame({"step": [0, 10, 20], "value": [3.0, 2.0, 1.0]})
+    b = pd.DataFrame({"step": [0, 10], "value": [5.0, 4.0]})  # this seed stopped early
+    band = curve_band([a, b]).set_index("step")
+    assert band.loc[10, "mean"] == 3.0 and band.loc[10, "std"] == 1.0 and band.loc[10, "n"] == 2
+    assert band.loc[20, "mean"] == 1.0 and band.loc[20, "n"] == 1
+    assert curve_band([]).empty
+
+
+def test_table_renderings_escape_their_markup():
+    from reports.tables import Table
+    t = Table("t", "rate_1 & 50%", ["variant", "a|b"], [["x_1 <b>", "50% ± 2 †"]], ["note #1"])
+    assert r"rate\_1 \& 50\%" in t.to_latex() and r"50\% $\pm$ 2 $^\dagger$" in t.to_latex()
+    assert "&lt;b&gt;" in t.to_html() and "a\\|b" in t.to_markdown()
