@@ -175,7 +175,7 @@ def training_curves(study: Study, folder: Path, metric: str = "train/loss") -> F
             band = curve_band([study.metric_history(rid, metric) for rid in runs["run_id"]])
             ax.set_title(f"{task} / {paper.variant_label(v)}", fontsize=9)
             ax.set_xlabel("iteration")
-            ax.set_ylabel("loss (NLL)" if "mdn" in v else "loss (MSE)")
+            ax.set_ylabel("loss (NLL)" if "mdn" in v else "loss (MSE)")  # axis scale set below
             if band.empty:
                 mark_gap(ax, "no finished run" if runs.empty else f"no {metric} history")
                 missing.append(f"{task}/{v}")
@@ -187,6 +187,8 @@ def training_curves(study: Study, folder: Path, metric: str = "train/loss") -> F
                             alpha=0.25, label="± std")
             ax.plot(band["step"], band["min"], color=color, lw=0.5, ls=":", label="min / max")
             ax.plot(band["step"], band["max"], color=color, lw=0.5, ls=":")
+            if (band["min"] > 0).all():  # positive losses (MSE) span decades: log axis
+                ax.set_yscale("log")
             ax.grid(alpha=0.3)
             ax.legend(loc="upper right")
     fig.suptitle(f"{title} per task and variant, finished runs — {study.name}")

@@ -55,4 +55,6 @@ def mark_gap(ax, text: str) -> None:
         ax.set_axis_off()
         ax.text2D(0.5, 0.5, f"gap: {text}", transform=ax.transAxes, **kw)
     else:
+        ax.set_xticks([])
+        ax.set_yticks([])
         ax.text(0.5, 0.5, f"gap: {text}", transform=ax.transAxes, **kw)
