@@ -158,7 +158,8 @@ def _run_parallel(todo, uri, workers, outcome, bar, level, interactive) -> None:
     try:
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             for cell, run_id in todo:
-                fut = pool.submit(run_cell, cell.to_dict(), uri, run_id, False, level)
+                fut = pool.submit(run_cell, cell.to_dict(), uri, run_id, False, level,
+                                  max(1, default_workers() // workers))
                 pending[fut] = (cell, run_id)
             for fut in as_completed(pending):
                 cell, run_id = pending[fut]

@@ -239,9 +239,8 @@ def _check_stm_section(name: str, values: dict[str, Any], cls: type) -> dict[str
 
 def known_tasks() -> dict[str, str]:
     """Registered task name -> its model_task."""
-    from envs.tasks import TASKS, get_task
+    from envs.tasks import TASKS  # importing the package registers the built-in tasks
 
-    get_task.__module__  # the import above registers the built-in tasks
     return {name: (cls.model_task or name) for name, cls in sorted(TASKS.items())}
 
 

@@ -28,6 +28,7 @@ class TaskEvaluation:
     q: np.ndarray  # (B, H+1, 7) generated joint trajectories
     results: list[dict[str, float]]
     metrics: dict[str, float] = field(default_factory=dict)
+    timing: dict[str, float] = field(default_factory=dict)
 
 
 def circle_episodes(task, n: int, seed: int, radii: list[float]) -> list:
@@ -103,13 +104,128 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: dict[str, Any], *, se
         n_traj += len(episodes)
         m = task_metrics(name, results, episodes)
         metrics.update(m)
-        details.append(TaskEvaluation(name, episodes, rollouts.q, results, m))
+        detail = TaskEvaluation(name, episodes, rollouts.q, results, m)
+        detail.timing = _timing(model, task, episodes, rollouts, gen_kwargs)
+        details.append(detail)
         log.info("evaluated %s: %s", name, {k: round(v, 3) for k, v in m.items() if "success_rate" in k
                                             or "final_distance" in k})
+    single = [d.timing["stm_seconds_per_traj"] for d in details]
+    ik = [d.timing["ik_seconds_per_traj"] for d in details if "ik_seconds_per_traj" in d.timing]
+    ik_batched = [d.timing["ik_batched_seconds_per_traj"] for d in details
+                  if "ik_batched_seconds_per_traj" in d.timing]
+    metrics["time/generation_batched_seconds_per_traj"] = gen_seconds / max(n_traj, 1)
+    if ik:
+        metrics["time/ik_seconds_per_traj"] = float(np.mean(ik))
+    if ik_batched:
+        metrics["time/ik_batched_seconds_per_traj"] = float(np.mean(ik_batched))
     metrics["time/rollout_seconds"] = gen_seconds
-    metrics["time/generation_seconds_per_traj"] = gen_seconds / max(n_traj, 1)
+    metrics["time/generation_seconds_per_traj"] = float(np.mean(single))
     metrics["time/physics_seconds"] = phys_seconds
     return metrics, details
+
+
+TIMED_EPISODES = 3  # episodes generated / solved one at a time for the per-trajectory timings
+BATCHED_IK_EPISODES = 10  # episodes in the batched IK timing (bounded: it is a side measurement)
+
+
+def _timing(model, task, episodes: list, rollouts, gen_kwargs: dict[str, Any]) -> dict[str, float]:
+    """Seconds per trajectory: the STM one episode at a time and batched, and the task's IK
+    expert on the same episodes (one at a time, and batched where the task has a batched expert)."""
+    from stm.rollout import generate
+
+    k = min(TIMED_EPISODES, len(episodes))
+    out: dict[str, float] = {"n_trajectories": float(len(episodes)), "batch_size": float(len(episodes)),
+                             "horizon": float(max(ep.horizon for ep in episodes)),
+                             "stm_batched_seconds_per_traj": rollouts.seconds / len(episodes)}
+    out["stm_seconds_per_traj"] = float(np.mean([generate(model, task, [ep], **gen_kwargs).seconds
+                                                 for ep in episodes[:k]]))
+    try:
+        solve_one = _expert_solver(task)
+        if solve_one is not None:
+            start = time.perf_counter()
+            for ep in episodes[:k]:
+                solve_one(ep)
+            out["ik_seconds_per_traj"] = (time.perf_counter() - start) / k
+        batch = episodes[:BATCHED_IK_EPISODES]
+        if task.name == "reacher":  # the batched expert: several episodes in one IK solve
+            q0 = np.stack([ep.q0 for ep in batch])
+            goals = np.array([ep.info["goal"] for ep in batch])
+            start = time.perf_counter()
+            task.expert(q0, goals)
+            out["ik_batched_seconds_per_traj"] = (time.perf_counter() - start) / len(batch)
+        if task.name == "circle":
+            start = time.perf_counter()
+            task.expert([float(ep.info["radius"]) for ep in batch])
+            out["ik_batched_seconds_per_traj"] = (time.perf_counter() - start) / len(batch)
+    except Exception as exc:  # timing the expert is a side measurement: never fail the cell for it
+        log.warning("IK timing for %s skipped: %s: %s", task.name, type(exc).__name__, exc)
+    return out
+
+
+def _expert_solver(task):
+    """A function solving one episode with the task's IK expert, if the task has one."""
+    if hasattr(task, "expert_rollout"):
+        return task.expert_rollout
+    if task.name == "circle":
+        return lambda ep: task.expert([float(ep.info["radius"])])
+    if hasattr(task, "expert_trajectory"):
+        return lambda ep: task.expert_trajectory(ep.q0, np.asarray(ep.info["goal"]))
+    return None
+
+
+def _nan_rows(rows: list[np.ndarray | None], width: int = 3) -> np.ndarray:
+    """Stack per-episode (T_i, width) arrays into (B, max T, width), NaN-padded."""
+    T = max((len(r) for r in rows if r is not None), default=1)
+    out = np.full((len(rows), T, width), np.nan)
+    for i, r in enumerate(rows):
+        if r is not None:
+            out[i, : len(r)] = r
+    return out
+
+
+def rollout_arrays(detail: TaskEvaluation, n_expert: int = 0) -> dict[str, np.ndarray]:
+    """The `rollouts/<E>.npz` arrays of the reports contract. `tip` is the forward kinematics of
+    the commanded joint trajectory (the evaluation's physics does not return its measured path;
+    position control tracks it closely). `expert_tip` (changing goal only) for the first
+    n_expert episodes: the IK expert's direct path from the rollout's state at the switch."""
+    from envs.kinematics import tip_position_np
+
+    eps, res = detail.episodes, detail.results
+    B = len(eps)
+
+    def vec(key: str) -> np.ndarray:
+        return np.array([ep.info[key] if key in ep.info else [np.nan] * 3 for ep in eps], dtype=float)
+
+    out = {
+        "tip": tip_position_np(detail.q),
+        "success": np.array([r.get("success", np.nan) for r in res], dtype=float),
+        "final_distance": np.array([r.get("final_distance", np.nan) for r in res], dtype=float),
+        "goal": vec("goal"),
+        "new_goal": vec("new_goal"),
+        "switch_step": np.array([int(ep.info.get("switch_step", -1)) for ep in eps], dtype=int),
+        "radius": np.array([float(ep.info.get("radius", np.nan)) for ep in eps], dtype=float),
+    }
+    if detail.task == "circle":
+        from envs.tasks.circle import CENTRE
+
+        out["center"] = np.repeat(np.asarray(CENTRE, float)[None], B, axis=0)
+    task = None
+    if n_expert and any("switch_step" in ep.info for ep in eps):
+        from envs.tasks import get_task
+
+        task = get_task(detail.task)
+    if task is not None and hasattr(task, "expert_after_switch"):
+        rows: list[np.ndarray | None] = [None] * B
+        for i in range(min(n_expert, B)):
+            try:
+                k = int(eps[i].info["switch_step"])
+                q = task.expert_after_switch(eps[i], detail.q[i, k])
+                q = q[0] if isinstance(q, tuple) else q
+                rows[i] = tip_position_np(np.asarray(q))
+            except Exception as exc:  # a figure aid only
+                log.warning("expert path for %s episode %d skipped: %s", detail.task, i, exc)
+        out["expert_tip"] = _nan_rows(rows)
+    return out
 
 
 def rollout_figure(detail: TaskEvaluation, path: Path, n: int) -> Path:

@@ -39,7 +39,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiments.config import ConfigError, StudyConfig
+from experiments.ablation import default_workers
+from experiments.config import ConfigError, StudyConfig, SweepConfig, config_hash
 from experiments.tracking import (
     PARENT_TAG,
     Client,
@@ -109,8 +110,17 @@ def make_sampler(cfg: StudyConfig):
 
 
 def study_name(cfg: StudyConfig) -> str:
+    """`--study-name`, else task-variant-<ablation study name> (profile, plus a config hash when
+    overridden), plus a hash of space/objective when not the defaults: a re-run with the same
+    settings continues the same Optuna study, different settings never mix into it."""
     s = cfg.sweep
-    return s.study_name or f"{s.task}-{s.variant}-{cfg.profile}"
+    if s.study_name:
+        return s.study_name
+    name = f"{s.task}-{s.variant}-{cfg.resolved_study_name()}"
+    default = SweepConfig()
+    if (tuple(s.space), s.objective) != (tuple(default.space), default.objective):
+        name += "-" + config_hash([list(s.space), s.objective])[:6]
+    return name
 
 
 def trial_configs(cfg: StudyConfig, params: dict[str, Any], seed: int):
@@ -179,14 +189,22 @@ class MlflowTrialLink:
 
 def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
     def objective(trial) -> float:
+        try:
+            return _objective(trial)
+        except Exception as exc:  # optuna records FAIL; keep the reason on the trial's run
+            run_id = trial.user_attrs.get("mlflow_run_id")
+            if run_id:
+                set_tags(link.client, run_id, {"error": f"{type(exc).__name__}: {exc}"[:5000]})
+            raise
+
+    def _objective(trial) -> float:
         import optuna
 
         from envs.datasets import load_demos
         from envs.tasks import get_task
-        from stm.train import train
-
         from experiments.evaluation import evaluate_model
         from experiments.worker import seed_everything
+        from stm.train import train
 
         run_id = link.start(trial)
         client = link.client
@@ -235,9 +253,14 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
 
 
 def _optimize(cfg_dict: dict, spec: str, name: str, uri: str, experiment_id: str, parent_id: str,
-              n_trials: int, total: int, level: int) -> None:
+              n_trials: int, total: int, level: int, threads: int | None = None) -> None:
     """One optimisation process (the main one or a spawned worker)."""
     import optuna
+
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
     from optuna.trial import TrialState
 
     from experiments.config import from_dict
@@ -314,7 +337,7 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     _fail_stale_trials(study, storage, link)
     done_states = (TrialState.COMPLETE, TrialState.PRUNED)
     remaining = cfg.sweep.trials - len(study.get_trials(deepcopy=False, states=done_states))
-    workers = max(1, min(cfg.workers or 1, remaining)) if remaining > 0 else 0
+    workers = max(1, min(cfg.workers or default_workers(), remaining)) if remaining > 0 else 0
     log.info("sweep %r: %d trial(s) to run with %d process(es); storage %s", name, max(remaining, 0), workers, spec)
     if remaining > 0:
         level = logging.getLogger().getEffectiveLevel()
@@ -323,8 +346,9 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
             _optimize(*args, remaining, cfg.sweep.trials, level)
         else:
             per = [remaining // workers + (i < remaining % workers) for i in range(workers)]
+            threads = max(1, default_workers() // workers)
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-                for f in [pool.submit(_optimize, *args, n, cfg.sweep.trials, level) for n in per]:
+                for f in [pool.submit(_optimize, *args, n, cfg.sweep.trials, level, threads) for n in per]:
                     f.result()
 
     study = optuna.load_study(study_name=name, storage=open_storage(spec))

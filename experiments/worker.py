@@ -58,9 +58,14 @@ def cell_params(cell: Cell) -> dict[str, str]:
 
 
 def run_cell(cell_dict: dict[str, Any], uri: str, run_id: str, progress: bool = False,
-             log_level: int = logging.INFO) -> CellResult:
-    """Entry point for worker processes (arguments are plain data so they pickle under spawn)."""
+             log_level: int = logging.INFO, threads: int | None = None) -> CellResult:
+    """Entry point for worker processes (arguments are plain data so they pickle under spawn).
+    `threads`: torch intra-op threads, so that K workers do not oversubscribe the cores."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
     cell = Cell.from_dict(cell_dict)
     client = Client(uri)
     start = time.perf_counter()
@@ -90,13 +95,14 @@ def run_cell(cell_dict: dict[str, Any], uri: str, run_id: str, progress: bool = 
 
 def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, progress: bool
                         ) -> tuple[dict[str, float], int]:
+    import numpy as np
+
     from envs.datasets import load_demos
     from envs.tasks import get_task
+    from experiments.evaluation import evaluate_model, rollout_arrays, rollout_figure
     from stm.checkpoint import load_checkpoint
     from stm.config import ModelConfig, TrainConfig
     from stm.train import train
-
-    from experiments.evaluation import evaluate_model, rollout_figure
 
     config_file = work / "config" / "config.json"
     config_file.parent.mkdir(parents=True)
@@ -145,6 +151,14 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
     metrics["time/train_seconds"] = result.seconds
     log_metrics(client, run_id, metrics)
     n_fig = int(cell.eval.get("figures", 0))
+    roll_dir = work / "rollouts"
+    roll_dir.mkdir()
+    timing = {}
+    for d in details:  # per-episode paths and outcomes for the report's trajectory figures
+        np.savez_compressed(roll_dir / f"{d.task}.npz", **rollout_arrays(d, n_expert=n_fig))
+        timing[d.task] = d.timing
+    (roll_dir / "ik_timing.json").write_text(json.dumps(timing, indent=2))
+    client.log_artifacts(run_id, str(roll_dir), "rollouts")
     if n_fig:
         fig_dir = work / "figures"
         for d in details:

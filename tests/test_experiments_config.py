@@ -187,3 +187,14 @@ def test_cli_rejects_bad_configs_with_exit_2_before_writing(tmp_path, args, fiel
     assert len(err_lines) == 1 and err_lines[0].startswith(f"error: {field}") and "allowed" in err_lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == before
     assert (tmp_path / "mlflow.db").read_bytes() == b""
+
+
+def test_sweep_study_names_separate_different_settings():
+    from experiments.sweep import study_name
+
+    base = study_name(load_profile("smoke"))
+    assert base == "reacher-ac-lstm-mdn-smoke"
+    assert study_name(load_profile("smoke", ["sweep.trials=9"])) == base  # a re-run continues it
+    assert study_name(load_profile("smoke", ["train.iters=9"])) != base
+    assert study_name(load_profile("smoke", ["sweep.space=[\"m\"]"])) != base
+    assert study_name(load_profile("smoke", ["sweep.study_name=x"])) == "x"

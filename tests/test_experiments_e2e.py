@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
@@ -71,10 +72,16 @@ def test_ablation_smoke_end_to_end(smoke_study):
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "train/loss")]
         assert steps == [5, 10]  # log_every = 5, logged in batches, no duplicates
         assert [m.step for m in client.get_metric_history(run.info.run_id, "val/metric")] == [5, 10]
-        artifacts = {f.path for d in ("checkpoint", "config", "figures")
+        artifacts = {f.path for d in ("checkpoint", "config", "figures", "rollouts")
                      for f in client.list_artifacts(run.info.run_id, d)}
         assert {"checkpoint/model.pt", "config/config.json", "figures/reacher_rollouts.png",
-                "figures/reacher-changing-goal_rollouts.png"} <= artifacts
+                "figures/reacher-changing-goal_rollouts.png", "rollouts/reacher.npz",
+                "rollouts/reacher-changing-goal.npz", "rollouts/ik_timing.json"} <= artifacts
+        local = client.download_artifacts(run.info.run_id, "rollouts/reacher-changing-goal.npz", str(store))
+        with np.load(local) as z:
+            assert z["tip"].shape[0] == 4 and z["tip"].shape[2] == 3
+            assert (z["switch_step"] > 0).all() and np.isfinite(z["new_goal"]).all()
+            assert np.array_equal(z["success"] == 1.0, z["final_distance"] < 0.05)
     assert "| variant | reacher | reacher-changing-goal |" in proc.stdout
     assert f"#/experiments/{exp.experiment_id}/runs" in proc.stdout
 
@@ -152,15 +159,17 @@ def test_failed_cell_is_marked_with_its_error(tmp_path):
 def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
     import optuna
 
-    proc = _cli(["sweep", "--profile", "smoke", "--trials", "4", "--workers", "1"], tmp_path)
+    # validation every 2 iterations: 5 intermediate values per trial for the median pruner
+    args = ["sweep", "--profile", "smoke", "--workers", "1", "--set", "train.val_every=2", "--study-name", "s4"]
+    proc = _cli([*args, "--trials", "4"], tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     journal = tmp_path / "optuna.journal"
     assert journal.exists()
     storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(journal)))
-    study = optuna.load_study(study_name="reacher-ac-lstm-mdn-smoke", storage=storage)
+    study = optuna.load_study(study_name="s4", storage=storage)
     states = [t.state.name for t in study.trials]
-    assert len(states) == 4 and set(states) <= {"COMPLETE", "PRUNED"}
-    assert "PRUNED" in states and "COMPLETE" in states
+    assert len(states) == 4 and set(states) <= {"COMPLETE", "PRUNED"}, (states, proc.stderr[-3000:])
+    assert "PRUNED" in states and "COMPLETE" in states, [(t.params, t.intermediate_values) for t in study.trials]
     assert all(t.intermediate_values for t in study.trials)
 
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
@@ -178,9 +187,9 @@ def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
     figures = {f.path for f in client.list_artifacts(parent.info.run_id, "figures")}
     assert "figures/optimization_history.png" in figures
 
-    again = _cli(["sweep", "--profile", "smoke", "--trials", "5", "--workers", "1"], tmp_path)
+    again = _cli([*args, "--trials", "5"], tmp_path)
     assert again.returncode == 0, again.stderr[-3000:]
-    study = optuna.load_study(study_name="reacher-ac-lstm-mdn-smoke", storage=storage)
+    study = optuna.load_study(study_name="s4", storage=storage)
     assert len(study.trials) == 5
     assert len(_children(client, exp.experiment_id, parent.info.run_id)) == 5
 
