@@ -68,6 +68,7 @@ class TrainConfig(_Config):
     temperature: float = 1.0  # sampling temperature when feedback == "sample"
     detach_feedback: bool = False  # stop gradients through fed-back states (acLSTM reference: no)
     phi_mode: str = "grounded"  # fed-back phi: "grounded" = FK of the integrated q, "free" = model's own
+    input_noise: float = 0.0  # std of Gaussian noise on ground-truth inputs, normalised units (not in the paper)
     checkpoint_every: int = 500  # iterations between checkpoints (0: only at the end)
     log_every: int = 10  # iterations between on_metrics calls
     val_every: int = 0  # iterations between validations (0: never)
@@ -84,6 +85,7 @@ class TrainConfig(_Config):
         _check(self.u >= 1, f"TrainConfig.u must be >= 1, got {self.u}")
         _check(self.v >= 0, f"TrainConfig.v must be >= 0, got {self.v}")
         _check(self.feedback in FEEDBACKS, f"TrainConfig.feedback must be one of {FEEDBACKS}, got {self.feedback!r}")
+        _check(self.input_noise >= 0, f"TrainConfig.input_noise must be >= 0, got {self.input_noise}")
         _check(self.temperature > 0, f"TrainConfig.temperature must be > 0, got {self.temperature}")
         _check(self.phi_mode in PHI_MODES, f"TrainConfig.phi_mode must be one of {PHI_MODES}, got {self.phi_mode!r}")
         for name in ("checkpoint_every", "log_every", "val_every"):

@@ -102,21 +102,32 @@ class STM(nn.Module):
             return mdn.mixture_mean(logit_alpha, mu)
         raise ValueError(f"unknown feedback mode {mode!r}; known: sample, component_mean, mixture_mean")
 
-    def cell_weights(self) -> list[tuple[torch.Tensor, ...]]:
-        """(w_ih, w_hh, b_ih, b_hh) of each LSTM layer, for single steps with torch.lstm_cell."""
-        return [tuple(getattr(self.lstm, f"{n}_l{k}") for n in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"))
-                for k in range(self.config.num_layers)]
+    def cell_weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Per layer, the LSTM weights rearranged for single steps (call once per sequence, inside
+        the autograd graph): W^T of [x, h] -> gates in the order (i, f, o, g), and the summed bias."""
+        H = self.config.hidden_size
+        order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
+        out = []
+        for k in range(self.config.num_layers):
+            w = torch.cat([getattr(self.lstm, f"weight_ih_l{k}"), getattr(self.lstm, f"weight_hh_l{k}")], dim=1)
+            b = getattr(self.lstm, f"bias_ih_l{k}") + getattr(self.lstm, f"bias_hh_l{k}")
+            out.append((w[order].t(), b[order]))
+        return out
 
     def step(self, z: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor],
-             weights: list[tuple[torch.Tensor, ...]]) -> torch.Tensor:
+             weights: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
         """One LSTM time step (B, D) -> top hidden state (B, H), updating the per-layer h, c lists in place.
 
-        Same maths and weights as self.lstm, without its per-call set-up: a multi-layer
-        nn.LSTM call costs several times more than these cells for a single step."""
+        Same maths and weights as self.lstm, without its per-call set-up (a multi-layer nn.LSTM
+        call costs several times more than this for one step): one matmul per layer on [x, h],
+        one sigmoid over the (i, f, o) gates."""
+        H = self.config.hidden_size
         x = z
-        for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(weights):
-            h[k], c[k] = torch.lstm_cell(x, (h[k], c[k]), w_ih, w_hh, b_ih, b_hh)
-            x = h[k]
+        for k, (w_t, b) in enumerate(weights):
+            gates = torch.addmm(b, torch.cat([x, h[k]], dim=1), w_t)
+            i, f, o = torch.sigmoid(gates[:, : 3 * H]).chunk(3, dim=1)
+            c[k] = torch.addcmul(f * c[k], i, torch.tanh(gates[:, 3 * H:]))
+            h[k] = x = o * torch.tanh(c[k])
         return x
 
 

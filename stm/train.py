@@ -105,6 +105,8 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
     With return_inputs, also the normalised inputs actually fed (B, T, D).
     """
     z_gt = model.normalize(batch.states[:, :-1])
+    if cfg.input_noise > 0 and model.training:
+        z_gt = z_gt + cfg.input_noise * torch.randn(z_gt.shape, generator=generator)
     T = z_gt.shape[1]
     if cfg.v == 0:
         raw, _ = model(z_gt)

@@ -183,3 +183,18 @@ def test_phi_mode_travels_with_the_checkpoint(toy, tmp_path):
     train(TINY, TrainConfig(iters=2, batch_size=2, u=1, v=1, phi_mode="free"), task, demos,
           checkpoint_path=tmp_path / "free.pt")
     assert load_model(tmp_path / "free.pt").phi_mode == "free"
+
+
+def test_input_noise_only_perturbs_ground_truth_inputs_in_training(toy):
+    task, demos = toy
+    model, data = _model(task, demos)
+    batch = data.batch(torch.arange(3))
+    cfg = TrainConfig(u=2, v=2, input_noise=0.1)
+    clean = model.normalize(batch.states[:, :-1])
+    _, fed = unroll(model, batch, task, cfg, KIN, torch.Generator().manual_seed(0), return_inputs=True)
+    gt = schedule(clean.shape[1], 2, 2)
+    noise = (fed[:, gt] - clean[:, gt]).std().item()
+    assert 0.05 < noise < 0.2
+    model.eval()
+    _, fed = unroll(model, batch, task, cfg, KIN, torch.Generator().manual_seed(0), return_inputs=True)
+    torch.testing.assert_close(fed[:, gt], clean[:, gt])
