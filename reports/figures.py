@@ -6,6 +6,7 @@ artifacts make a gap, never an exception.
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -98,8 +99,8 @@ def compute_time(study: Study, folder: Path) -> FigureResult:
     df = df[df["seconds"] > 0]
     if df.empty:
         return gap(name, title, "no run logged rollouts/ik_timing.json or time/*_seconds_per_traj")
-    tasks = [t for t in ("circle", "reacher") if t in set(df["eval_task"])] + \
-        sorted(set(df["eval_task"]) - {"circle", "reacher"})
+    order = ("circle", "reacher", "reacher-changing-goal", "pick-place", "stack", "pick-place-changing-goal")
+    tasks = [t for t in order if t in set(df["eval_task"])] + sorted(set(df["eval_task"]) - set(order))
     keys = list(TIMING_KEYS)
     fig, ax = plt.subplots(figsize=(max(6.5, 2.4 * len(tasks)), 4.2))
     width = 0.8 / len(keys)
@@ -126,8 +127,8 @@ def compute_time(study: Study, folder: Path) -> FigureResult:
     ax.set_xlabel("task")
     ax.set_ylabel("wall time per trajectory (s, log scale)")
     speedup = f"STM speed-up over IK, one trajectory: {', '.join(notes)}" if notes else "no paired STM/IK numbers"
-    ax.set_title(f"{title} (mean ± std over runs of all variants)\n{speedup} "
-                 f"(paper: {paper.STM_SPEEDUP_OVER_IK:g}x on circles)", fontsize=10)
+    speedup = textwrap.fill(f"{speedup} (paper: {paper.STM_SPEEDUP_OVER_IK:g}x on circles)", width=100)
+    ax.set_title(f"{title} (mean ± std over runs of all variants)\n{speedup}", fontsize=10)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     ax.grid(axis="y", which="both", alpha=0.3)
     return save(fig, folder, name, title)
