@@ -133,6 +133,10 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
                 _record(outcome, res, bar, len(todo), interactive)
         else:
             _run_parallel(todo, uri, workers, outcome, bar, level, interactive)
+    except KeyboardInterrupt:
+        # interrupted cells stay RUNNING with their last checkpoint: a re-run resumes them
+        client.set_terminated(parent_id, "KILLED")
+        raise
     finally:
         bar.close()
     outcome.seconds = time.perf_counter() - start

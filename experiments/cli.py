@@ -109,7 +109,11 @@ def main(argv: list[str] | None = None) -> int:
         from experiments.ablation import run_study, summary_text
         from experiments.tracking import Client
 
-        outcome = run_study(cfg)
+        try:
+            outcome = run_study(cfg)
+        except KeyboardInterrupt:
+            print("interrupted; re-run the same command to resume the unfinished cells", file=sys.stderr)
+            return 130
         print(summary_text(outcome, Client()))
         return 1 if outcome.failures else 0
 

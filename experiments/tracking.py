@@ -202,16 +202,23 @@ def set_tags(client: Client, run_id: str, tags: Mapping[str, Any]) -> None:
 
 
 class MetricBuffer:
-    """Collects (step, {name: value}) and writes them in one log_batch per flush."""
+    """Collects (step, {name: value}) and writes them in one log_batch per flush: at least
+    every `flush_seconds`, at every checkpoint and at the end. Steps <= `skip_through` are
+    dropped: a resumed run recomputes them exactly and has logged them already."""
 
-    def __init__(self, client: Client, run_id: str, max_pending: int = 2000):
+    def __init__(self, client: Client, run_id: str, max_pending: int = 2000, flush_seconds: float = 30.0,
+                 skip_through: int = -1):
         self.client, self.run_id, self.max_pending = client, run_id, max_pending
+        self.flush_seconds, self.skip_through = flush_seconds, skip_through
         self.pending: list[Metric] = []
+        self._last_flush = time.monotonic()
 
     def add(self, step: int, values: Mapping[str, float]) -> None:
+        if step <= self.skip_through:
+            return
         now = int(time.time() * 1000)
         self.pending += [Metric(k, float(v), now, int(step)) for k, v in values.items()]
-        if len(self.pending) >= self.max_pending:
+        if len(self.pending) >= self.max_pending or time.monotonic() - self._last_flush >= self.flush_seconds:
             self.flush()
 
     def extend(self, items: Iterable[tuple[int, Mapping[str, float]]]) -> None:
@@ -219,9 +226,16 @@ class MetricBuffer:
             self.add(step, values)
 
     def flush(self) -> None:
+        self._last_flush = time.monotonic()
         if self.pending:
             self.client.log_batch(self.run_id, metrics=self.pending)
             self.pending = []
+
+
+def last_logged_step(client: Client, run_id: str, keys: Iterable[str]) -> int:
+    """The highest step logged for any of `keys` (-1 if none)."""
+    steps = [m.step for k in keys for m in client.get_metric_history(run_id, k)]
+    return max(steps, default=-1)
 
 
 def runs_page_url(experiment_id: str, host: str = "127.0.0.1", port: int = 5000) -> str:

@@ -15,7 +15,16 @@ from pathlib import Path
 from typing import Any
 
 from experiments.cells import Cell
-from experiments.tracking import Client, MetricBuffer, flatten, log_metrics, log_params, provenance_params, set_tags
+from experiments.tracking import (
+    Client,
+    MetricBuffer,
+    flatten,
+    last_logged_step,
+    log_metrics,
+    log_params,
+    provenance_params,
+    set_tags,
+)
 
 log = logging.getLogger(__name__)
 
@@ -126,10 +135,11 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
     train_cfg = TrainConfig.from_dict(cell.train)
     seed_everything(cell.seed)
 
-    buffer = MetricBuffer(client, run_id)
+    # a resumed run recomputes the steps after its checkpoint exactly: drop the ones already logged
+    logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) if resumed_from else -1
+    buffer = MetricBuffer(client, run_id, skip_through=logged)
 
     def on_checkpoint(path: Path, iteration: int) -> None:
-        # metrics first, then the checkpoint: a resumed run never re-logs a step it already has
         buffer.flush()
         client.log_artifact(run_id, str(path), CHECKPOINT_DIR)
         set_tags(client, run_id, {"checkpoint_iteration": iteration})

@@ -14,7 +14,7 @@ import pytest
 from experiments.cells import build_cells
 from experiments.config import ConfigError, available_profiles, load_profile, parse_override
 from experiments.stats import success_summary, wilson_interval
-from experiments.tracking import MetricBuffer, flatten, tracking_uri, with_retries
+from experiments.tracking import MetricBuffer, flatten, last_logged_step, tracking_uri, with_retries
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -153,13 +153,17 @@ def test_metric_buffer_batches(tmp_path):
     client = Client(f"sqlite:///{tmp_path / 'm.db'}")
     exp = get_or_create_experiment(client, "unit")
     run = client.create_run(exp).info.run_id
-    buf = MetricBuffer(client, run, max_pending=1000)
+    buf = MetricBuffer(client, run, max_pending=1000, flush_seconds=3600)
     for i in range(1, 31):
         buf.add(i, {"train/loss": 1.0 / i})
     assert client.get_metric_history(run, "train/loss") == []  # nothing written until a flush
     buf.flush()
     hist = client.get_metric_history(run, "train/loss")
     assert [m.step for m in hist] == list(range(1, 31))
+    resumed = MetricBuffer(client, run, flush_seconds=0.0, skip_through=last_logged_step(client, run, ["train/loss"]))
+    for i in range(25, 41):  # steps 25..30 are recomputed after a resume: not logged twice
+        resumed.add(i, {"train/loss": 1.0 / i})
+    assert [m.step for m in client.get_metric_history(run, "train/loss")] == list(range(1, 41))
     assert (tmp_path / "mlartifacts" / "unit").parent.name == "mlartifacts"
 
 

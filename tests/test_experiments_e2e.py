@@ -147,7 +147,7 @@ def test_failed_cell_is_marked_with_its_error(tmp_path):
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cell = build_cells(load_profile("smoke", ["train.iters=2", "train.val_every=0"], variants=["lstm"]))[0]
-    bad = {**cell.to_dict(), "eval_tasks": ["reacher", "no-such-task"]}
+    bad = {**cell.to_dict(), "eval_tasks": ["no-such-task", "reacher"]}
     client = Client(uri)
     run_id = client.create_run(get_or_create_experiment(client, "ablation")).info.run_id
     result = run_cell(bad, uri, run_id)
