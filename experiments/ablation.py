@@ -36,6 +36,10 @@ from experiments.worker import CellResult, run_cell
 
 log = logging.getLogger(__name__)
 EXPERIMENT = "ablation"
+# One torch thread per cell: the models are small, so intra-op threads mostly spin; measured
+# on pick-place (2 cores, loaded machine) 2 threads cost ~10x the CPU time and ~5x the wall time
+# of 1 thread per iteration. Parallelism comes from the worker processes instead.
+TORCH_THREADS = 1
 
 
 @dataclass
@@ -129,7 +133,8 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     try:
         if workers == 1:
             for cell, run_id in todo:
-                res = run_cell(cell.to_dict(), uri, run_id, progress=interactive, log_level=level)
+                res = run_cell(cell.to_dict(), uri, run_id, progress=interactive, log_level=level,
+                               threads=TORCH_THREADS)
                 _record(outcome, res, bar, len(todo), interactive)
         else:
             _run_parallel(todo, uri, workers, outcome, bar, level, interactive)
@@ -162,8 +167,7 @@ def _run_parallel(todo, uri, workers, outcome, bar, level, interactive) -> None:
     try:
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             for cell, run_id in todo:
-                fut = pool.submit(run_cell, cell.to_dict(), uri, run_id, False, level,
-                                  max(1, default_workers() // workers))
+                fut = pool.submit(run_cell, cell.to_dict(), uri, run_id, False, level, TORCH_THREADS)
                 pending[fut] = (cell, run_id)
             for fut in as_completed(pending):
                 cell, run_id = pending[fut]

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiments.ablation import default_workers
+from experiments.ablation import TORCH_THREADS, default_workers
 from experiments.config import ConfigError, StudyConfig, SweepConfig, config_hash
 from experiments.tracking import (
     PARENT_TAG,
@@ -343,12 +343,11 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
         level = logging.getLogger().getEffectiveLevel()
         args = (cfg.to_dict(), spec, name, uri, experiment_id, parent_id)
         if workers == 1:
-            _optimize(*args, remaining, cfg.sweep.trials, level)
+            _optimize(*args, remaining, cfg.sweep.trials, level, TORCH_THREADS)
         else:
             per = [remaining // workers + (i < remaining % workers) for i in range(workers)]
-            threads = max(1, default_workers() // workers)
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-                for f in [pool.submit(_optimize, *args, n, cfg.sweep.trials, level, threads) for n in per]:
+                for f in [pool.submit(_optimize, *args, n, cfg.sweep.trials, level, TORCH_THREADS) for n in per]:
                     f.result()
 
     study = optuna.load_study(study_name=name, storage=open_storage(spec))
