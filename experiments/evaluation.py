@@ -75,8 +75,9 @@ def task_metrics(name: str, results: list[dict[str, float]], episodes: list) -> 
 
 
 def evaluate_model(model, eval_tasks: list[str], eval_cfg: dict[str, Any], *, seed: int = 0,
-                   phi_mode: str | None = None) -> tuple[dict[str, float], list[TaskEvaluation]]:
-    """Metrics over every evaluation task plus per-task details (for figures)."""
+                   phi_mode: str | None = None, timings: bool = True) -> tuple[dict[str, float], list[TaskEvaluation]]:
+    """Metrics over every evaluation task plus per-task details (for figures). `timings`: also
+    time one-at-a-time generation and the IK expert (the compute-time comparison)."""
     from envs.tasks import get_task
     from stm.rollout import evaluate, generate
 
@@ -105,11 +106,12 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: dict[str, Any], *, se
         m = task_metrics(name, results, episodes)
         metrics.update(m)
         detail = TaskEvaluation(name, episodes, rollouts.q, results, m)
-        detail.timing = _timing(model, task, episodes, rollouts, gen_kwargs)
+        if timings:
+            detail.timing = _timing(model, task, episodes, rollouts, gen_kwargs)
         details.append(detail)
         log.info("evaluated %s: %s", name, {k: round(v, 3) for k, v in m.items() if "success_rate" in k
                                             or "final_distance" in k})
-    single = [d.timing["stm_seconds_per_traj"] for d in details]
+    single = [d.timing["stm_seconds_per_traj"] for d in details if d.timing]
     ik = [d.timing["ik_seconds_per_traj"] for d in details if "ik_seconds_per_traj" in d.timing]
     ik_batched = [d.timing["ik_batched_seconds_per_traj"] for d in details
                   if "ik_batched_seconds_per_traj" in d.timing]
@@ -119,7 +121,8 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: dict[str, Any], *, se
     if ik_batched:
         metrics["time/ik_batched_seconds_per_traj"] = float(np.mean(ik_batched))
     metrics["time/rollout_seconds"] = gen_seconds
-    metrics["time/generation_seconds_per_traj"] = float(np.mean(single))
+    if single:
+        metrics["time/generation_seconds_per_traj"] = float(np.mean(single))
     metrics["time/physics_seconds"] = phys_seconds
     return metrics, details
 

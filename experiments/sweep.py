@@ -241,7 +241,8 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
             raise optuna.TrialPruned(f"pruned at iteration {result.iterations}")
         if cfg.sweep.objective == "final_distance":
             ev = {**dataclasses.asdict(cfg.eval), "rollouts": cfg.sweep.eval_rollouts}
-            metrics, _ = evaluate_model(result.model, [cfg.sweep.task], ev, seed=seed, phi_mode=train_cfg.phi_mode)
+            metrics, _ = evaluate_model(result.model, [cfg.sweep.task], ev, seed=seed, phi_mode=train_cfg.phi_mode,
+                                        timings=False)
             log_metrics(client, run_id, metrics)
             key = "radial_rmse_mean" if cfg.sweep.task == "circle" else "final_distance_mean"
             return metrics[f"{cfg.sweep.task}/{key}"]
