@@ -28,6 +28,7 @@ def bench(session: nox.Session) -> None:
     _install(session, "[dev]")
     session.run("pytest", "-m", "bench", "--benchmark-only", "--benchmark-columns=min,mean,median,ops,rounds",
                 *session.posargs)
+    session.run("python", "-m", "stm.bench")
 
 
 @nox.session
