@@ -194,7 +194,8 @@ def circle_table(summary: pd.DataFrame, study: Study) -> Table:
         rows.append([label, paper.variant_label(r.variant), *ours, str(r.seeds),
                      f"{paper_rmse:.3f}" if paper_rmse is not None else "–",
                      f"< {paper.CIRCLE_MAX_RADIAL_ERROR_PCT:g}%" if paper_rmse is not None else "–"])
-    notes = ["Mean ± std over seeds of finished runs; RMSE of the measured tip's distance from the centre vs r.",
+    notes = ["Mean ± std over seeds of finished runs; radial error = distance of the tip measured in physics from "
+             "the ideal circle (envs.tasks.circle).",
              f"Paper: average RMSE at 5/10/15 cm ({paper.CIRCLE_RMSE_UNIT_NOTE}); the radial error never "
              f"exceeded {paper.CIRCLE_MAX_RADIAL_ERROR_PCT:g}% of r. (unseen): a radius the runs list in "
              "eval.circle_unseen_radii."]

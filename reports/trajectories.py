@@ -72,8 +72,12 @@ def circles(study: Study, folder: Path) -> FigureResult:
                     if not math.isnan(float(r))})
     if not radii:  # no radius array: one panel per episode index
         radii = [None]
-    fig, axes = plt.subplots(1, len(radii), figsize=(3.6 * len(radii), 3.8), squeeze=False)
-    for ax, r in zip(axes[0], radii, strict=True):
+    cols = min(3, len(radii))
+    rows = math.ceil(len(radii) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.0 * rows), squeeze=False)
+    for ax in axes.flat[len(radii):]:
+        ax.set_axis_off()
+    for ax, r in zip(axes.flat, radii, strict=False):
         drew_ideal = False
         for v, (_, arrays) in reps.items():
             rad = arrays.get("radius")
@@ -84,16 +88,20 @@ def circles(study: Study, folder: Path) -> FigureResult:
             path = np.asarray(arrays["tip"][i], dtype=float)
             centre, ideal = _ideal_circle(arrays, i, path)
             if ideal is not None and not drew_ideal:
-                ax.plot(ideal[:, 0] * 100, ideal[:, 1] * 100, "k--", lw=1.2, label="ideal")
+                ax.plot(ideal[:, 0] * 100, ideal[:, 1] * 100, "k--", lw=1.2)
                 drew_ideal = True
             rel = (path - centre)[:, :2] * 100
-            ax.plot(rel[:, 0], rel[:, 1], color=variant_color(v, variants), lw=1.2, label=paper.variant_label(v))
+            ax.plot(rel[:, 0], rel[:, 1], color=variant_color(v, variants), lw=1.2)
+            ax.plot(rel[0, 0], rel[0, 1], "o", color=variant_color(v, variants), ms=3)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x − centre (cm)")
         ax.set_ylabel("y − centre (cm)")
         ax.set_title(f"r = {r * 100:g} cm" if r is not None else "episode 0")
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper right")
+    handles = [matplotlib.lines.Line2D([], [], color="black", ls="--", label="ideal circle")]
+    handles += [matplotlib.lines.Line2D([], [], color=variant_color(v, variants), label=paper.variant_label(v))
+                for v in reps]
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles))
     missing = [v for v in variants if v not in reps]
     fig.suptitle(f"{title} (tool tip, first seed) — {study.name}"
                  + (f"; gap: {', '.join(missing)}" if missing else ""))
