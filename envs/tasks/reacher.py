@@ -2,7 +2,8 @@
 
 Documented choices (all positions in the base frame; the table top is at z = -0.15,
 the table spans x 0.30..1.00, y -0.60..0.60):
-- start: q_raw = NEUTRAL_Q + U(-START_JOINT_RANGE, +START_JOINT_RANGE) per joint, then
+- start: q_raw = NEUTRAL_Q + U(-r, +r) per joint, r = start_joint_range (constructor
+  argument, default START_JOINT_RANGE = 0.3 rad), then
   projected by IK onto the tool-down configurations that keep q_raw's tip position
   (nearest in joint space, warm-started from q_raw); kept only if that tip lies in START_BOX.
 - goal: uniform in GOAL_BOX (in front of the robot, 10-35 cm above the table), at least
@@ -72,17 +73,23 @@ class Reacher(Task):
         psi_names=("goal_x", "goal_y", "goal_z"),
     )
 
-    def __init__(self, n_demos: int = 45, min_steps: int = 50, max_steps: int = 70):
+    def __init__(self, n_demos: int = 45, min_steps: int = 50, max_steps: int = 70,
+                 start_joint_range: float = START_JOINT_RANGE):
+        """start_joint_range: half-width (rad) of the uniform start range around NEUTRAL_Q;
+        it is part of config(), so another value gets its own dataset cache entry."""
         if not 1 <= min_steps <= max_steps:
             raise ValueError(f"need 1 <= min_steps <= max_steps, got {min_steps}, {max_steps}")
         if n_demos < 1:
             raise ValueError(f"n_demos must be >= 1, got {n_demos}")
+        if not 0.0 <= start_joint_range <= np.pi:
+            raise ValueError(f"start_joint_range must be in [0, pi] rad, got {start_joint_range}")
         self.n_demos, self.min_steps, self.max_steps = n_demos, min_steps, max_steps
+        self.start_joint_range = float(start_joint_range)
 
     def config(self) -> dict[str, Any]:
         return {
             "task": self.model_task, "n_demos": self.n_demos, "min_steps": self.min_steps,
-            "max_steps": self.max_steps, "start_joint_range": START_JOINT_RANGE, "start_box": START_BOX,
+            "max_steps": self.max_steps, "start_joint_range": self.start_joint_range, "start_box": START_BOX,
             "goal_box": GOAL_BOX, "min_distance": MIN_DISTANCE, "step_seconds": self.step_seconds,
             "success_radius": SUCCESS_RADIUS, "profile": "min-jerk line, tool down",
         }
@@ -95,7 +102,8 @@ class Reacher(Task):
         """n tool-down start configurations (n, 7), see the module docstring."""
         out: list[np.ndarray] = []
         while len(out) < n:
-            raw = NEUTRAL_Q + rng.uniform(-START_JOINT_RANGE, START_JOINT_RANGE, size=(n, 7))
+            r = self.start_joint_range
+            raw = NEUTRAL_Q + rng.uniform(-r, r, size=(n, 7))
             q, ok = tool_down_at(tip_position_np(raw), raw)
             ok &= _in_box(tip_position_np(q), START_BOX) & LIMITS.contains(q)
             out.extend(q[ok])
