@@ -1,4 +1,4 @@
-"""`python -m experiments {ablation,sweep,ui}`.
+"""`python -m experiments {ablation,sweep,smoothing,idm,ui}`.
 
 Exit codes: 0 success; 1 some cells/trials failed (summary printed); 2 bad configuration
 (one line naming the field and its allowed values, printed before anything is written).
@@ -51,6 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--storage", default=None, help="Optuna storage URL (default: journal file next to mlflow.db)")
     sw.add_argument("--study-name", default=None)
 
+    from experiments.postprocess import add_parsers
+
+    add_parsers(sub)  # smoothing, idm
+
     ui = sub.add_parser("ui", help="MLflow UI on 127.0.0.1:5000 over the study store")
     ui.add_argument("--host", default="127.0.0.1")
     ui.add_argument("--port", type=int, default=5000)
@@ -93,6 +97,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
     for noisy in ("alembic", "mlflow", "urllib3", "matplotlib"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+
+    if args.command in ("smoothing", "idm"):
+        from experiments.postprocess import main as postprocess_main
+
+        return postprocess_main(args)
 
     if args.command == "ui":
         from experiments.ui import serve
