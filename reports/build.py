@@ -10,7 +10,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from reports import figures, sweeps, tables, trajectories
+from reports import figures, postprocess, sweeps, tables, trajectories
 from reports.html import study_index
 from reports.plotting import FigureResult
 from reports.store import Study
@@ -100,7 +100,8 @@ def build_report(study: Study, out_root: Path, log_artifacts: bool = True) -> Re
     folder = out_root / study.slug
     _clear(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    parts = _sweep_parts if study.kind == "sweep" else _ablation_parts
+    parts = {"sweep": _sweep_parts, "smoothing": postprocess.parts, "idm": postprocess.parts}.get(
+        study.kind, _ablation_parts)
     tabs, figs = parts(study, folder)
     for t in tabs:
         t.write(folder)
