@@ -152,13 +152,13 @@ def _idm_config(profile: str, raw: dict[str, Any]) -> PostConfig:
     if unknown:
         allowed = ", ".join(["data.<field>", "idm.<field>", *top_fields, "skeletons", "study_name"])
         raise ConfigError(f"{unknown[0]}: unknown field; allowed: {allowed}")
-    data_set = _build(_Plain(ExplorationConfig, exclude=("dynamics",)), data_raw, "data.")
+    data_set = _build(_plain_fields(ExplorationConfig, exclude=("dynamics",)), data_raw, "data.")
     with _stm_errors("data", "ExplorationConfig"):
         data = dataclasses.replace(base.data, **{k: getattr(data_set, k) for k in data_raw})
-    idm_set = _build(_Plain(IDMConfig, exclude=()), idm_raw, "idm.")
+    idm_set = _build(_plain_fields(IDMConfig, exclude=()), idm_raw, "idm.")
     with _stm_errors("idm", "IDMConfig"):
         idm = dataclasses.replace(base.idm, **{k: getattr(idm_set, k) for k in idm_raw})
-    top_set = _build(_Plain(type(base), exclude=("data", "idm")), raw, "")
+    top_set = _build(_plain_fields(type(base), exclude=("data", "idm")), raw, "")
     top = {f: getattr(top_set if f in raw else base, f) for f in top_fields}
     with _stm_errors("", type(base).__name__):
         study = type(base)(data=data, idm=idm, **top)
@@ -189,7 +189,7 @@ def _stm_errors(section: str, class_name: str):
         raise ConfigError(msg if not section or msg.startswith(f"{section}.") else f"{section}: {msg}") from None
 
 
-def _Plain(cls: type, exclude: tuple[str, ...]) -> type:
+def _plain_fields(cls: type, exclude: tuple[str, ...]) -> type:
     """A frozen dataclass with cls's fields minus `exclude` (defaults kept), so that
     experiments.config._build checks names and types without running cls's own checks."""
     fields = [(f.name, f.type, dataclasses.field(default=f.default) if f.default is not dataclasses.MISSING
@@ -284,9 +284,12 @@ def run_postprocess(cfg: PostConfig, progress: bool | None = None) -> tuple[str,
             work = Path(tmp)
             if cfg.kind == "smoothing":
                 from stm.plans import FOUR_GOALS
-                from stm.smoothing import smoothing_study
+                from stm.smoothing import smooth_gd, smoothing_study
 
                 s = cfg.study
+                # torch.optim's first step pays one-off lazy imports (~3 s measured, vs 0.07 s for 300
+                # iterations after): warm up so that time_gd_s compares the methods, not the imports
+                smooth_gd(np.zeros((1, 4, 7)), s.gamma, iters=2)
                 skeletons = stm_skeletons(client, found, s.steps, work) if found else None
                 res = smoothing_study(skeletons, FOUR_GOALS if found else None, gamma=s.gamma,
                                       goal_weight=s.goal_weight, iters=s.iters, step_seconds=s.step_seconds,

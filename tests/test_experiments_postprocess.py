@@ -141,9 +141,10 @@ def _fake_ablation_cell(client: MlflowClient, work: Path) -> str:
     task = get_task("reacher")
     cfg = ModelConfig(hidden_size=8, num_layers=1, mixtures=2)
     model = STM(cfg, task.layout)
-    path = save_checkpoint({"format_version": FORMAT_VERSION, "model": model.state_dict(), "model_config": cfg.to_dict(),
-                            "train_config": TrainConfig().to_dict(), "layout": layout_to_dict(task.layout),
-                            "task": "reacher", "iteration": 0}, work / "model.pt")
+    payload = {"format_version": FORMAT_VERSION, "model": model.state_dict(), "model_config": cfg.to_dict(),
+               "train_config": TrainConfig().to_dict(), "layout": layout_to_dict(task.layout), "task": "reacher",
+               "iteration": 0}
+    path = save_checkpoint(payload, work / "model.pt")
     exp = client.create_experiment("ablation")
     run = client.create_run(exp, tags={"task": "reacher", "variant": "ac-lstm-mdn", "role": "cell"})
     client.log_artifact(run.info.run_id, str(path), "checkpoint")
