@@ -1,4 +1,4 @@
-"""Sessions: tests (default), ablation, sweep, report, ui, bench, lint.
+"""Sessions: tests (default), integration, ablation, sweep, report, ui, bench, lint.
 
 Each session installs the project from this folder into its own virtualenv;
 `nox -r` reuses it. Arguments after `--` go to the underlying command, e.g.
@@ -19,7 +19,15 @@ def _install(session: nox.Session, extras: str = "") -> None:
 def tests(session: nox.Session) -> None:
     """The test suite (benchmarks excluded)."""
     _install(session, "[dev]")
-    session.run("pytest", "-m", "not bench", *session.posargs)
+    session.run("pytest", "-m", "not bench and not integration", *session.posargs)
+
+
+@nox.session
+def integration(session: nox.Session) -> None:
+    """Scale-out on PostgreSQL: installs it (Debian packages) if missing, starts a throwaway
+    cluster and an MLflow server on 127.0.0.1, runs sweep workers and kills one (tests/integration)."""
+    _install(session, "[dev,integration]")
+    session.run("pytest", "-m", "integration", "tests/integration", *session.posargs)
 
 
 @nox.session

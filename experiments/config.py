@@ -59,6 +59,9 @@ class SweepConfig:
     study_name: str = ""  # "" -> "<task>-<variant>-<profile>"
     warmup_steps: int = 0  # median pruner: iterations before pruning may start
     startup_trials: int = 2  # median pruner: trials completed before pruning may start
+    heartbeat: int = 10  # s; RDB storages (postgresql://, sqlite:///): a trial's process beats this often
+    grace_period: int = 60  # s without a beat before a trial counts as dead (its worker was killed)
+    max_retry: int = 2  # a dead worker's trial is re-queued with the same parameters this many times
 
 
 @dataclass(frozen=True)
@@ -331,6 +334,11 @@ def validate(cfg: StudyConfig) -> None:
     _check_positive("sweep.eval_rollouts", s.eval_rollouts)
     _check_positive("sweep.warmup_steps", s.warmup_steps, 0)
     _check_positive("sweep.startup_trials", s.startup_trials, 0)
+    _check_positive("sweep.heartbeat", s.heartbeat)
+    _check_positive("sweep.max_retry", s.max_retry, 0)
+    if s.grace_period <= s.heartbeat:
+        raise ConfigError(f"sweep.grace_period: {s.grace_period!r} is not allowed; allowed: integers > "
+                          f"sweep.heartbeat ({s.heartbeat})")
     _check_choice("sweep.sampler", s.sampler, SAMPLERS)
     _check_choice("sweep.objective", s.objective, OBJECTIVES)
     if s.storage and not s.storage.startswith(("postgresql://", "postgresql+", "sqlite:///", "journal:")):

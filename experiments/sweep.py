@@ -21,9 +21,17 @@ median pruner watches the validation metric through `on_validation`.
 
 Storage: by default a JournalFileBackend file `optuna.journal` next to mlflow.db (safe for
 several processes on one host); `--storage postgresql://...` for several hosts. Re-running
-the same sweep continues it until `trials` trials are COMPLETE or PRUNED; trials left RUNNING
-by a killed sweep are marked FAIL when a sweep starts (do not start two sweeps of the same
-study at once; use `--workers` instead).
+the same sweep continues it until `trials` trials are COMPLETE or PRUNED.
+
+Dead workers: on the journal file, trials left RUNNING by a killed sweep are marked FAIL
+when a sweep starts (do not start two sweeps of the same study at once there; use
+`--workers`). On an RDB storage (postgresql://, sqlite:///) every trial process beats a
+heartbeat (`sweep.heartbeat` s); a trial without a beat for `sweep.grace_period` s is marked
+FAIL by whichever worker looks next, its MLflow run FAILED, and it is re-queued with the same
+parameters (`sweep.max_retry` times, Optuna's RetryFailedTrialCallback). So the same command
+can run on several hosts at once (see docs/scale-out.md): each runs trials until the study
+has `trials` COMPLETE or PRUNED, then waits for the trials other workers hold, running the
+retries of dead ones, before it writes the summary.
 """
 
 from __future__ import annotations
@@ -32,12 +40,16 @@ import dataclasses
 import logging
 import math
 import multiprocessing as mp
+import os
+import socket
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from mlflow.entities import Metric
 
 from experiments.ablation import TORCH_THREADS, default_workers
 from experiments.config import ConfigError, StudyConfig, SweepConfig, config_hash
@@ -87,7 +99,11 @@ def storage_spec(cfg: StudyConfig, uri: str) -> str:
     return cfg.sweep.storage or f"journal:{store_dir(uri) / JOURNAL_NAME}"
 
 
-def open_storage(spec: str):
+def open_storage(spec: str, sweep: SweepConfig | None = None, uri: str | None = None):
+    """The Optuna storage; an RDB one beats heartbeats and retries dead workers' trials when
+    `sweep` is given (their MLflow runs, in store `uri`, are marked FAILED)."""
+    import warnings
+
     import optuna
     from optuna.storages.journal import JournalFileBackend, JournalStorage
 
@@ -95,7 +111,64 @@ def open_storage(spec: str):
         path = Path(spec.removeprefix("journal:"))
         path.parent.mkdir(parents=True, exist_ok=True)
         return JournalStorage(JournalFileBackend(str(path)))
-    return optuna.storages.RDBStorage(spec)
+    if sweep is None:
+        return optuna.storages.RDBStorage(spec)
+    with warnings.catch_warnings():  # heartbeats are marked experimental in Optuna
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.storages.RDBStorage(spec, heartbeat_interval=sweep.heartbeat, grace_period=sweep.grace_period,
+                                          heartbeat_stale_trial_callback=RetryDeadTrial(sweep.max_retry, uri))
+
+
+def has_heartbeat(storage) -> bool:
+    from optuna.storages._heartbeat import is_heartbeat_enabled
+
+    return is_heartbeat_enabled(storage)
+
+
+def fail_dead_trials(study) -> None:
+    """Optuna's heartbeat check (marked experimental): FAIL, and re-queue, the trials of dead workers."""
+    import warnings
+
+    import optuna
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        optuna.storages.fail_stale_trials(study)
+
+
+def worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+class RetryDeadTrial:
+    """Called by Optuna for a trial whose worker stopped beating: re-queue it with the same
+    parameters (RetryFailedTrialCallback) and mark its MLflow run FAILED with the reason."""
+
+    def __init__(self, max_retry: int, uri: str | None):
+        import warnings
+
+        import optuna
+        from optuna.storages import RetryHeartbeatStaleTrialCallback
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            self.retry = RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
+        self.uri = uri
+
+    def __call__(self, study, frozen) -> None:
+        log.warning("trial %d: its worker %s stopped beating; marked FAIL and re-queued", frozen.number,
+                    frozen.user_attrs.get("worker", "?"))
+        self.retry(study, frozen)
+        run_id = frozen.user_attrs.get("mlflow_run_id")
+        if run_id and self.uri:
+            client = Client(self.uri)
+            # what the dead worker reported to Optuna may not have reached MLflow (metrics are batched)
+            now = int(time.time() * 1000)
+            client.log_batch(run_id, metrics=[Metric("val/metric", float(v), now, int(step))
+                                              for step, v in sorted(frozen.intermediate_values.items())])
+            set_tags(client, run_id, {"trial_state": "FAIL", "error": f"worker {frozen.user_attrs.get('worker', '?')} "
+                                      "died (no heartbeat); the trial was re-queued with the same parameters"})
+            client.set_terminated(run_id, "FAILED")
 
 
 def make_sampler(cfg: StudyConfig):
@@ -167,8 +240,12 @@ class MlflowTrialLink:
     def start(self, trial) -> str:
         tags = {**self.tags, PARENT_TAG: self.parent_id, "role": "trial", "trial": str(trial.number),
                 "optuna_study": trial.study.study_name}
+        retried = trial.storage.get_trial_system_attrs(trial._trial_id).get("failed_trial")
+        if retried is not None:
+            tags["retry_of_trial"] = str(retried)
         run = self.client.create_run(self.experiment_id, run_name=f"trial-{trial.number}", tags=tags)
         trial.set_user_attr("mlflow_run_id", run.info.run_id)
+        trial.set_user_attr("worker", worker_id())
         return run.info.run_id
 
     def __call__(self, study, frozen) -> None:
@@ -269,13 +346,38 @@ def _optimize(cfg_dict: dict, spec: str, name: str, uri: str, experiment_id: str
     logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
     optuna.logging.set_verbosity(optuna.logging.WARNING if level > logging.DEBUG else optuna.logging.INFO)
     cfg = from_dict(cfg_dict)
-    study = optuna.load_study(study_name=name, storage=open_storage(spec), sampler=make_sampler(cfg),
+    study = optuna.load_study(study_name=name, storage=open_storage(spec, cfg.sweep, uri), sampler=make_sampler(cfg),
                               pruner=make_pruner(cfg))
     link = MlflowTrialLink(uri, experiment_id, parent_id, {"task": cfg.sweep.task, "variant": cfg.sweep.variant,
                                                            "profile": cfg.profile, "study_name": name})
-    study.optimize(objective_factory(cfg, link), n_trials=n_trials, catch=(Exception,),
-                   callbacks=[link, optuna.study.MaxTrialsCallback(total, states=(TrialState.COMPLETE,
-                                                                                   TrialState.PRUNED))])
+    callbacks = [link]
+    if total:
+        callbacks.append(optuna.study.MaxTrialsCallback(total, states=(TrialState.COMPLETE, TrialState.PRUNED)))
+    study.optimize(objective_factory(cfg, link), n_trials=n_trials, catch=(Exception,), callbacks=callbacks)
+
+
+def _drain(cfg: StudyConfig, args: tuple, level: int) -> None:
+    """RDB storages: wait until no trial is RUNNING (other workers finishing theirs), failing
+    the trials of dead workers and running their re-queued copies (WAITING) one at a time."""
+    import optuna
+    from optuna.trial import TrialState
+
+    spec, name, uri = args[1], args[2], args[3]
+    study = optuna.load_study(study_name=name, storage=open_storage(spec, cfg.sweep, uri))
+    announced = False
+    while True:
+        fail_dead_trials(study)
+        if study.get_trials(deepcopy=False, states=(TrialState.WAITING,)):
+            _optimize(*args, 1, 0, level, TORCH_THREADS)
+            continue
+        running = study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+        if not running:
+            return
+        if not announced:
+            log.info("waiting for %d trial(s) held by other workers: %s", len(running),
+                     ", ".join(f"{t.number} ({t.user_attrs.get('worker', '?')})" for t in running))
+            announced = True
+        time.sleep(cfg.sweep.heartbeat)
 
 
 def make_pruner(cfg: StudyConfig):
@@ -303,18 +405,38 @@ class SweepOutcome:
         if self.best_value is not None:
             lines.append(f"best value {self.best_value:.5g} with {self.best_params}")
         if self.failed:
-            lines.append(f"{self.failed} trial(s) FAILED; see the trial runs' error text")
+            lines.append(f"{self.failed} trial(s) FAILED (not recovered by a retry); see the trial runs' error text")
         lines.append(f"runs: {runs_page_url(self.experiment_id)}  (start the UI with `nox -s ui`)")
         return "\n".join(lines)
 
 
 def _fail_stale_trials(study, storage, link: MlflowTrialLink) -> None:
+    """Trials a killed sweep left RUNNING: by heartbeat on an RDB storage (another host's live
+    trial is left alone), else all of them (journal file: one sweep command at a time)."""
     from optuna.trial import TrialState
 
+    if has_heartbeat(storage):
+        fail_dead_trials(study)
+        return
     for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
         log.warning("trial %d was left RUNNING by a killed sweep; marking it FAIL", t.number)
         storage.set_trial_state_values(t._trial_id, TrialState.FAIL)
         link(study, storage.get_trial(t._trial_id))
+
+
+def _one_parent(client: Client, experiment_id: str, name: str, parent_id: str) -> str:
+    """Sweep commands started at once on several hosts may each create a parent run: all of
+    them settle on the earliest one (each sees it, since it was created before their own) and
+    delete their own duplicate."""
+    runs = client.search_runs([experiment_id], filter_string=f"tags.study_name = '{name}' and tags.role = 'parent'",
+                              max_results=100)
+    if len(runs) <= 1:
+        return parent_id
+    first = min(runs, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id
+    if first != parent_id and not client.search_runs(
+            [experiment_id], filter_string=f"tags.`{PARENT_TAG}` = '{parent_id}'", max_results=1):
+        client.delete_run(parent_id)
+    return first
 
 
 def run_sweep(cfg: StudyConfig) -> SweepOutcome:
@@ -330,8 +452,9 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     parent_id = get_or_create_parent_run(client, experiment_id, name, {
         "kind": "sweep", "profile": cfg.profile, "task": cfg.sweep.task, "variant": cfg.sweep.variant,
         "optuna_storage": spec})
+    parent_id = _one_parent(client, experiment_id, name, parent_id)
     log_params(client, parent_id, {**flatten({"sweep": dataclasses.asdict(cfg.sweep)}), **provenance_params()})
-    storage = open_storage(spec)
+    storage = open_storage(spec, cfg.sweep, uri)
     study = optuna.create_study(study_name=name, storage=storage, direction="minimize", load_if_exists=True,
                                 sampler=make_sampler(cfg), pruner=make_pruner(cfg))
     link = MlflowTrialLink(uri, experiment_id, parent_id, {})
@@ -340,9 +463,9 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     remaining = cfg.sweep.trials - len(study.get_trials(deepcopy=False, states=done_states))
     workers = max(1, min(cfg.workers or default_workers(), remaining)) if remaining > 0 else 0
     log.info("sweep %r: %d trial(s) to run with %d process(es); storage %s", name, max(remaining, 0), workers, spec)
+    level = logging.getLogger().getEffectiveLevel()
+    args = (cfg.to_dict(), spec, name, uri, experiment_id, parent_id)
     if remaining > 0:
-        level = logging.getLogger().getEffectiveLevel()
-        args = (cfg.to_dict(), spec, name, uri, experiment_id, parent_id)
         if workers == 1:
             _optimize(*args, remaining, cfg.sweep.trials, level, TORCH_THREADS)
         else:
@@ -350,13 +473,15 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
                 for f in [pool.submit(_optimize, *args, n, cfg.sweep.trials, level, TORCH_THREADS) for n in per]:
                     f.result()
+    if has_heartbeat(storage):
+        _drain(cfg, args, level)
 
     study = optuna.load_study(study_name=name, storage=open_storage(spec))
     trials = study.get_trials(deepcopy=False)
     outcome = SweepOutcome(name, experiment_id, parent_id, spec)
     for t in trials:
         outcome.counts[t.state.name] = outcome.counts.get(t.state.name, 0) + 1
-    outcome.failed = outcome.counts.get("FAIL", 0)
+    outcome.failed = len(unrecovered_failures(trials))
     if any(t.state == TrialState.COMPLETE for t in trials):
         best = study.best_trial
         outcome.best_value, outcome.best_params = best.value, best.params
@@ -371,6 +496,15 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     outcome.seconds = time.perf_counter() - start
     client.set_terminated(parent_id, "FINISHED" if not outcome.failed else "FAILED")
     return outcome
+
+
+def unrecovered_failures(trials) -> list:
+    """FAIL trials whose re-queued copy (after a dead worker) did not end COMPLETE or PRUNED."""
+    from optuna.trial import TrialState
+
+    recovered = {n for t in trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)
+                 for n in t.system_attrs.get("retry_history", [])}
+    return [t for t in trials if t.state == TrialState.FAIL and t.number not in recovered]
 
 
 def sweep_figures(study, out: Path) -> list[Path]:
