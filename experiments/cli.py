@@ -40,6 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--variants", nargs="+", default=None, help="variants (default: the profile's)")
     ab.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1")
     ab.add_argument("--study-name", default=None, help="parent run name (default: from the profile and config)")
+    ab.add_argument("--worker", action="store_true", help="pull cells from a queue shared with other worker "
+                    "commands (other hosts too; see docs/scale-out.md); --workers K local processes")
+    ab.add_argument("--queue", default=None, help="with --worker: Optuna RDB URL of the cell queue, e.g. "
+                    "postgresql://... (default: queue.db next to a local mlflow.db)")
 
     sw = sub.add_parser("sweep", help="Optuna sweep of mixture count and auto-conditioning schedule")
     _common(sw)
@@ -119,7 +123,17 @@ def main(argv: list[str] | None = None) -> int:
         from experiments.tracking import Client
 
         try:
-            outcome = run_study(cfg)
+            if args.worker:
+                from experiments.queue import resolve_queue, run_worker
+
+                try:
+                    queue = resolve_queue(args.queue)
+                except ConfigError as e:
+                    print(f"error: {e}", file=sys.stderr)
+                    return 2
+                outcome = run_worker(cfg, queue)
+            else:
+                outcome = run_study(cfg)
         except KeyboardInterrupt:
             print("interrupted; re-run the same command to resume the unfinished cells", file=sys.stderr)
             return 130

@@ -65,6 +65,7 @@ from experiments.tracking import (
     provenance_params,
     runs_page_url,
     set_tags,
+    settle_parent_run,
     store_dir,
     tracking_uri,
 )
@@ -424,21 +425,6 @@ def _fail_stale_trials(study, storage, link: MlflowTrialLink) -> None:
         link(study, storage.get_trial(t._trial_id))
 
 
-def _one_parent(client: Client, experiment_id: str, name: str, parent_id: str) -> str:
-    """Sweep commands started at once on several hosts may each create a parent run: all of
-    them settle on the earliest one (each sees it, since it was created before their own) and
-    delete their own duplicate."""
-    runs = client.search_runs([experiment_id], filter_string=f"tags.study_name = '{name}' and tags.role = 'parent'",
-                              max_results=100)
-    if len(runs) <= 1:
-        return parent_id
-    first = min(runs, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id
-    if first != parent_id and not client.search_runs(
-            [experiment_id], filter_string=f"tags.`{PARENT_TAG}` = '{parent_id}'", max_results=1):
-        client.delete_run(parent_id)
-    return first
-
-
 def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     import optuna
     from optuna.trial import TrialState
@@ -452,7 +438,7 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     parent_id = get_or_create_parent_run(client, experiment_id, name, {
         "kind": "sweep", "profile": cfg.profile, "task": cfg.sweep.task, "variant": cfg.sweep.variant,
         "optuna_storage": spec})
-    parent_id = _one_parent(client, experiment_id, name, parent_id)
+    parent_id = settle_parent_run(client, experiment_id, name, parent_id)
     log_params(client, parent_id, {**flatten({"sweep": dataclasses.asdict(cfg.sweep)}), **provenance_params()})
     storage = open_storage(spec, cfg.sweep, uri)
     study = optuna.create_study(study_name=name, storage=storage, direction="minimize", load_if_exists=True,

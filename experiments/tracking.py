@@ -132,6 +132,21 @@ def get_or_create_parent_run(client: Client, experiment_id: str, study_name: str
     return run.info.run_id
 
 
+def settle_parent_run(client: Client, experiment_id: str, study_name: str, parent_id: str) -> str:
+    """Commands of one study started at once (workers on several hosts) may each create a
+    parent run: all settle on the earliest (each sees it, since it was created before their
+    own) and delete their own duplicate while it has no children."""
+    runs = client.search_runs([experiment_id], max_results=100,
+                              filter_string=f"tags.study_name = '{study_name}' and tags.role = 'parent'")
+    if len(runs) <= 1:
+        return parent_id
+    first = min(runs, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id
+    if first != parent_id and not client.search_runs(
+            [experiment_id], filter_string=f"tags.`{PARENT_TAG}` = '{parent_id}'", max_results=1):
+        client.delete_run(parent_id)
+    return first
+
+
 def child_runs(client: Client, experiment_id: str, parent_id: str) -> list:
     return client.search_runs([experiment_id], filter_string=f"tags.`{PARENT_TAG}` = '{parent_id}'",
                               max_results=50_000)

@@ -1,0 +1,201 @@
+"""`python -m experiments ablation ... --worker`: ablation cells pulled from a queue that
+several worker commands share, on one host or many (see docs/scale-out.md).
+
+The queue is an Optuna study in an RDB storage (`--queue postgresql://...`, or by default
+`queue.db` next to a local mlflow.db): each unfinished cell is a WAITING trial carrying the
+cell's config hash. A worker takes the next one with Optuna's own atomic pop (`study.ask`),
+runs the cell in its MLflow child run (reused, so a cell resumes from its last checkpoint
+artifact) and beats a heartbeat meanwhile. A cell whose worker stops beating for
+`sweep.grace_period` s is marked FAIL by whichever worker looks next and re-queued
+(`sweep.max_retry` times); the retry resumes the same MLflow run from its checkpoint. Every
+worker enqueues the cells that are neither FINISHED nor queued; duplicates from workers that
+started at the same moment are skipped when popped. A worker stops when nothing is WAITING or
+RUNNING, so the last one out writes a complete summary. We keep no scheduler of our own.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+from experiments.ablation import EXPERIMENT, TORCH_THREADS, StudyOutcome, prepare_datasets, prepare_runs
+from experiments.cells import Cell, build_cells
+from experiments.config import ConfigError, StudyConfig, from_dict
+from experiments.sweep import fail_dead_trials, has_heartbeat, open_storage, worker_id
+from experiments.tracking import (
+    Client,
+    child_runs,
+    get_or_create_experiment,
+    get_or_create_parent_run,
+    log_params,
+    provenance_params,
+    set_tags,
+    settle_parent_run,
+    sqlite_path,
+    tracking_uri,
+)
+from experiments.worker import CellResult, run_cell
+
+log = logging.getLogger(__name__)
+QUEUE_PREFIX = "ablation-cells:"
+QUEUE_DB = "queue.db"
+
+
+def resolve_queue(url: str | None, uri: str | None = None) -> str:
+    """The queue's Optuna RDB URL: `url`, else queue.db next to a local sqlite mlflow.db."""
+    if not url:
+        db = sqlite_path(uri or tracking_uri())
+        if db is None:
+            raise ConfigError("--queue: required when MLFLOW_TRACKING_URI is not a local sqlite store; "
+                              "allowed: postgresql://..., sqlite:///...")
+        return f"sqlite:///{db.parent / QUEUE_DB}"
+    if not url.startswith(("postgresql://", "postgresql+", "sqlite:///")):
+        raise ConfigError(f"--queue: unsupported URL {url!r}; allowed: postgresql://..., sqlite:///... "
+                          "(an RDB storage: the queue needs heartbeats)")
+    return url
+
+
+def _states(study, *names: str) -> list:
+    from optuna.trial import TrialState
+
+    return study.get_trials(deepcopy=False, states=tuple(TrialState[n] for n in names))
+
+
+def enqueue_missing(study, cells: list[Cell], finished: set[str]) -> int:
+    """Queue every cell that is neither FINISHED in MLflow nor WAITING/RUNNING in the queue."""
+    queued = {t.user_attrs.get("config_hash") for t in _states(study, "WAITING", "RUNNING")}
+    new = [c for c in cells if c.config_hash not in finished | queued]
+    for cell in new:
+        study.enqueue_trial({}, user_attrs={"config_hash": cell.config_hash, "cell": cell.key},
+                            skip_if_exists=False)
+    return len(new)
+
+
+def finished_hashes(client: Client, experiment_id: str, parent_id: str) -> set[str]:
+    return {r.data.tags.get("config_hash", "") for r in child_runs(client, experiment_id, parent_id)
+            if r.info.status == "FINISHED"}
+
+
+def _cell_objective(cells: dict[str, Cell], client: Client, uri: str, experiment_id: str, parent_id: str,
+                    level: int, ran: list[CellResult]):
+    def objective(trial) -> float:
+        import optuna
+
+        h = trial.user_attrs.get("config_hash")
+        if h not in cells:  # a fresh trial, asked for after another worker took the last WAITING one
+            trial.set_user_attr("skipped", "nothing queued")
+            raise optuna.TrialPruned("no cell queued")
+        cell = cells[h]
+        trial.set_user_attr("worker", worker_id())
+        if h in finished_hashes(client, experiment_id, parent_id):
+            trial.set_user_attr("skipped", "already FINISHED")
+            return 0.0
+        earlier = [t for t in _states(trial.study, "WAITING", "RUNNING")
+                   if t.user_attrs.get("config_hash") == h and t.number < trial.number]
+        if earlier:  # queued twice by workers that started together: the earlier entry runs it
+            trial.set_user_attr("skipped", f"duplicate of queue entry {earlier[0].number}")
+            return 0.0
+        (cell, run_id), = prepare_runs(client, experiment_id, parent_id, [cell])[0]
+        trial.set_user_attr("mlflow_run_id", run_id)
+        set_tags(client, run_id, {"worker": worker_id(), "queue_entry": trial.number})
+        log.info("worker %s: cell %s (queue entry %d, run %s)", worker_id(), cell.key, trial.number, run_id)
+        res = run_cell(cell.to_dict(), uri, run_id, progress=False, log_level=level, threads=TORCH_THREADS)
+        ran.append(res)
+        if res.status != "FINISHED":
+            raise RuntimeError(res.error)  # the queue entry FAILs too; a re-run queues the cell again
+        return 0.0
+
+    return objective
+
+
+def _work(cfg_dict: dict, queue_url: str, uri: str, experiment_id: str, parent_id: str, level: int
+          ) -> list[CellResult]:
+    """One worker process: pop and run cells until nothing is WAITING or RUNNING."""
+    import optuna
+
+    logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    cfg = from_dict(cfg_dict)
+    cells = {c.config_hash: c for c in build_cells(cfg)}
+    client = Client(uri)
+    study = optuna.load_study(study_name=QUEUE_PREFIX + cfg.resolved_study_name(),
+                              storage=open_storage(queue_url, cfg.sweep, uri),
+                              sampler=optuna.samplers.RandomSampler())
+    ran: list[CellResult] = []
+    objective = _cell_objective(cells, client, uri, experiment_id, parent_id, level, ran)
+    announced = False
+    while True:
+        fail_dead_trials(study)  # dead workers' cells go back to WAITING
+        if _states(study, "WAITING"):
+            study.optimize(objective, n_trials=1, catch=(Exception,))
+            continue
+        running = _states(study, "RUNNING")
+        if not running:
+            return ran
+        if not announced:
+            log.info("queue empty; waiting for %d cell(s) held by other workers: %s", len(running),
+                     ", ".join(f"{t.user_attrs.get('cell')} ({t.user_attrs.get('worker', '?')})" for t in running))
+            announced = True
+        time.sleep(cfg.sweep.heartbeat)
+
+
+def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
+    """Join the study's queue (creating it, the experiment and the parent run if this is the
+    first worker), work it with `cfg.workers` local processes, and summarise the whole study."""
+    import optuna
+
+    start = time.perf_counter()
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    uri = tracking_uri()
+    queue_url = resolve_queue(queue_url, uri)
+    cells = build_cells(cfg)
+    study_name = cfg.resolved_study_name()
+    client = Client(uri)
+    experiment_id = get_or_create_experiment(client, EXPERIMENT)
+    parent_id = get_or_create_parent_run(client, experiment_id, study_name,
+                                         {"kind": "ablation", "profile": cfg.profile, "queue": queue_url})
+    parent_id = settle_parent_run(client, experiment_id, study_name, parent_id)
+    log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
+                                   "study_hash": cfg.study_hash(), **provenance_params()})
+    storage = open_storage(queue_url, cfg.sweep, uri)
+    assert has_heartbeat(storage)
+    study = optuna.create_study(study_name=QUEUE_PREFIX + study_name, storage=storage, load_if_exists=True)
+    added = enqueue_missing(study, cells, finished_hashes(client, experiment_id, parent_id))
+    log.info("study %r: %d cells, %d newly queued; queue %s", study_name, len(cells), added, queue_url)
+    prepare_datasets(sorted({c.task for c in cells}))  # cached per host: built once, not in every process
+    level = logging.getLogger().getEffectiveLevel()
+    args = (cfg.to_dict(), queue_url, uri, experiment_id, parent_id, level)
+    workers = max(1, cfg.workers or 1)
+    outcome = StudyOutcome(experiment_id, parent_id, study_name)
+    try:
+        if workers == 1:
+            ran = _work(*args)
+        else:
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+                ran = [r for f in [pool.submit(_work, *args) for _ in range(workers)] for r in f.result()]
+    except KeyboardInterrupt:
+        # this worker's cells stop beating: another worker (or a re-run after the grace period) retries them
+        client.set_terminated(parent_id, "KILLED")
+        raise
+    # the study as a whole (all workers): the latest run of each cell
+    latest: dict[str, object] = {}
+    for run in sorted(child_runs(client, experiment_id, parent_id), key=lambda r: r.info.start_time):
+        latest[run.data.tags.get("config_hash", "")] = run
+    mine = {r.run_id for r in ran}
+    for cell in cells:
+        run = latest.get(cell.config_hash)
+        if run is None:
+            outcome.results.append(CellResult(cell.key, "", "FAILED", error="never run (queue entry lost?)"))
+        elif run.info.run_id in mine:
+            outcome.results.append([r for r in ran if r.run_id == run.info.run_id][-1])
+        elif run.info.status == "FINISHED":
+            outcome.skipped.append(cell.key)
+        else:
+            outcome.results.append(CellResult(cell.key, run.info.run_id, "FAILED",
+                                              error=run.data.tags.get("error", run.info.status)))
+    outcome.seconds = time.perf_counter() - start
+    set_tags(client, parent_id, {"cells": len(cells), "failed_cells": len(outcome.failures)})
+    client.set_terminated(parent_id, "FAILED" if outcome.failures else "FINISHED")
+    return outcome
