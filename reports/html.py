@@ -24,6 +24,9 @@ def study_index(study: Study, folder: Path, tables: list[Table], figures: list[F
     info = [("study", study.name), ("parent run", study.run_id), ("experiment", study.experiment),
             ("kind", study.kind), ("profile", study.profile), ("child runs", len(ch)),
             ("finished", int((ch["status"] == "FINISHED").sum())), ("failed", len(failed))]
+    if study.kind in ("smoothing", "idm"):  # one run, no children: its own status and plan source
+        info += [("run status", study.parent.get("status") or "?"),
+                 ("skeletons", study.parent.get("tags.skeleton_source") or "?")]
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>Report: {_e(study.name)}</title>",
              f"<style>{CSS}</style></head><body><h1>Report: {_e(study.name)}</h1>",
              "<table>" + "".join(f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in info) + "</table>"]

@@ -165,3 +165,22 @@ def test_skeletons_from_an_ablation_checkpoint(tmp_path, monkeypatch, capsys):
     run = _parent(client, "smoothing")
     assert run.data.tags["skeleton_source"] == f"stm:{run_id}"
     assert run.data.metrics["gd_goal/goal_error_m"] >= 0 and "skeleton/mean_sq_jerk" in run.data.metrics
+
+
+def test_report_of_a_study_without_figures_shows_gaps(tmp_path, monkeypatch):
+    """A smoothing run that died before its figures: the report lists the gaps instead of failing."""
+    from reports.__main__ import main as report_main
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(uri)
+    exp = client.create_experiment("smoothing")
+    run = client.create_run(exp, tags={"kind": "smoothing", "profile": "smoke", "study_name": "broken",
+                                       "role": "parent"})
+    client.log_metric(run.info.run_id, "skeleton/mean_sq_jerk", 12.5)
+    client.set_terminated(run.info.run_id, "FAILED")
+    monkeypatch.chdir(tmp_path)
+    assert report_main(["--tracking-uri", uri, "--out", str(tmp_path / "out"), "--no-log-artifacts"]) == 0
+    html = (tmp_path / "out" / "broken" / "index.html").read_text()
+    assert "gap: no figures/smoothing_tip_paths.png" in html and "FAILED" in html
+    md = (tmp_path / "out" / "broken" / "smoothing_table.md").read_text()
+    assert "| skeleton (before) | 12.5 | gap |" in md
