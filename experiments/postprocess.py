@@ -25,6 +25,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import os
 import sys
 import tempfile
 import time
@@ -96,12 +97,14 @@ class PostConfig:
                     for k, v in self.study.params().items()}
         return {k: v for k, v in dataclasses.asdict(self.study).items() if k not in ("skeletons", "study_name")}
 
-    def resolved_study_name(self) -> str:
+    def resolved_study_name(self, from_stm: bool = False) -> str:
+        """<kind>-<profile>[-stm][-<hash of the params if they differ from the profile's>]: plans from a
+        trained STM and from the stand-in are separate studies."""
         if self.study_name:
             return self.study_name
-        base = load_config(self.kind, self.profile, [])
-        same = base.params() == self.params() and base.skeletons == self.skeletons
-        return f"{self.kind}-{self.profile}" + ("" if same else f"-{config_hash(self.params())[:8]}")
+        same = load_config(self.kind, self.profile, []).params() == self.params()
+        return (f"{self.kind}-{self.profile}" + ("-stm" if from_stm else "")
+                + ("" if same else f"-{config_hash(self.params())[:8]}"))
 
 
 def _idm_profile(profile: str):
@@ -224,6 +227,7 @@ def stm_skeletons(client, found: tuple[str, str], steps: int, work: Path):
     from stm.checkpoint import load_model
     from stm.plans import FOUR_GOALS, stm_plans
 
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one small file: no bar
     local = client.download_artifacts(found[0], found[1], str(work))
     model = load_model(Path(local))
     return stm_plans(model, FOUR_GOALS, horizon=steps)
@@ -270,7 +274,7 @@ def run_postprocess(cfg: PostConfig, progress: bool | None = None) -> tuple[str,
     if cfg.skeletons == "stm" and found is None:
         raise ConfigError(f"skeletons: 'stm' needs a FINISHED ablation run for {STM_TASK} / {STM_VARIANT} with a "
                           "checkpoint artifact in the store; allowed: auto, stand-in")
-    study_name = cfg.resolved_study_name()
+    study_name = cfg.resolved_study_name(from_stm=found is not None)
     experiment_id = get_or_create_experiment(client, cfg.kind)
     source = f"stm:{found[0]}" if found else ("stand-in:jittery-ik-expert" if cfg.kind == "smoothing"
                                               else "stand-in:ik-expert")

@@ -164,6 +164,7 @@ def test_skeletons_from_an_ablation_checkpoint(tmp_path, monkeypatch, capsys):
     assert main(["smoothing", "--profile", "smoke", "--set", "skeletons=stm"]) == 0
     run = _parent(client, "smoothing")
     assert run.data.tags["skeleton_source"] == f"stm:{run_id}"
+    assert run.data.tags["study_name"] == "smoothing-smoke-stm"  # apart from the stand-in's study
     assert run.data.metrics["gd_goal/goal_error_m"] >= 0 and "skeleton/mean_sq_jerk" in run.data.metrics
 
 
