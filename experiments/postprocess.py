@@ -237,7 +237,7 @@ def stm_skeletons(client, found: tuple[str, str], steps: int, work: Path):
 
 
 def _split_results(res: dict[str, Any]) -> tuple[dict[str, float], dict[str, str], list[str], list[str]]:
-    """metrics (finite numbers), tags (strings, flattened dicts), figure and other artifact paths."""
+    """metrics (numbers), tags (strings, flattened dicts), figure and other artifact paths."""
     from experiments.tracking import flatten
 
     metrics, tags = {}, {}
@@ -279,7 +279,8 @@ def run_postprocess(cfg: PostConfig, progress: bool | None = None) -> tuple[str,
     source = f"stm:{found[0]}" if found else ("stand-in:jittery-ik-expert" if cfg.kind == "smoothing"
                                               else "stand-in:ik-expert")
     parent_id = get_or_create_parent_run(client, experiment_id, study_name,
-                                         {"kind": cfg.kind, "profile": cfg.profile, "skeleton_source": source})
+                                         {"kind": cfg.kind, "profile": cfg.profile, "skeleton_source": source,
+                                          "error": ""})  # a re-run clears an earlier failure's error
     log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name, **cfg.params(),
                                    **provenance_params()})
     log.info("%s study %r (skeletons: %s); store %s", cfg.kind, study_name, source, client.uri)

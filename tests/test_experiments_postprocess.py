@@ -185,3 +185,25 @@ def test_report_of_a_study_without_figures_shows_gaps(tmp_path, monkeypatch):
     assert "gap: no figures/smoothing_tip_paths.png" in html and "FAILED" in html
     md = (tmp_path / "out" / "broken" / "smoothing_table.md").read_text()
     assert "| skeleton (before) | 12.5 | gap |" in md
+
+
+def test_a_failing_study_is_recorded_and_a_rerun_clears_it(tmp_path, monkeypatch, capsys):
+    import stm.smoothing
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.chdir(tmp_path)
+    real = stm.smoothing.smoothing_study
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("solver exploded")
+
+    monkeypatch.setattr(stm.smoothing, "smoothing_study", broken)
+    assert main(["smoothing", "--profile", "smoke"]) == 1
+    assert "RuntimeError: solver exploded" in capsys.readouterr().err
+    run = _parent(MlflowClient(uri), "smoothing")
+    assert run.info.status == "FAILED" and run.data.tags["error"] == "RuntimeError: solver exploded"
+    monkeypatch.setattr(stm.smoothing, "smoothing_study", real)
+    assert main(["smoothing", "--profile", "smoke"]) == 0
+    run = _parent(MlflowClient(uri), "smoothing")  # the same study's run, now finished
+    assert run.info.status == "FINISHED" and run.data.tags["error"] == "" and "gd/mean_sq_jerk" in run.data.metrics
