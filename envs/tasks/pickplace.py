@@ -9,7 +9,7 @@ must end: z = TABLE_TOP_Z + level * 0.04 (level 0 on the table, 1 and 2 on a tow
 phi = tip - goal (the grasped block's bottom is 3 cm below the tip).
 
 Distributions (documented choices):
-- start: q0 = NEUTRAL_Q + U(-0.3, 0.3) rad per joint, clipped to the limits, kept when
+- start: q0 = NEUTRAL_Q + U(-0.1, 0.1) rad per joint, clipped to the limits, kept when
   the tip lies in START_BOX (at least 12 cm above the table, clear of the blocks).
 - goal xy uniform in GOAL_REGION (x 0.50..0.75, y -0.05..0.25; at least 15 cm from
   PICK_XY); level uniform in {0, 1, 2}. A level-L pick-place episode (and its demo
@@ -69,7 +69,7 @@ from envs.tasks.expert import check_trajectory, min_jerk, velocity_ratio
 log = logging.getLogger(__name__)
 
 STEP_SECONDS = 0.1
-START_JOINT_RANGE = 0.3  # rad, half-width of the uniform start range around NEUTRAL_Q
+START_JOINT_RANGE = 0.1  # rad, half-width of the start range around NEUTRAL_Q (why 0.1: see envs/tasks/reacher.py)
 START_BOX = ((0.30, 0.80), (-0.15, 0.45), (TABLE_TOP_Z + 0.12, 0.35))  # tip at the start (m)
 GOAL_REGION = ((0.50, 0.75), (-0.05, 0.25))  # goal xy ranges (m)
 LEVELS = (0, 1, 2)
