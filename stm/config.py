@@ -72,7 +72,7 @@ class TrainConfig(_Config):
     checkpoint_every: int = 500  # iterations between checkpoints (0: only at the end)
     log_every: int = 10  # iterations between on_metrics calls
     val_every: int = 0  # iterations between validations (0: never)
-    val_episodes: int = 16  # demonstrations replayed closed-loop for the validation metric
+    val_episodes: int = 16  # fresh task episodes rolled out for the validation metric (stm.train.Validation)
     max_seconds: float = 0.0  # wall-clock budget of the run, resumed runs included (0: none)
     seed: int = 0
 

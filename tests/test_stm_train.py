@@ -198,3 +198,23 @@ def test_input_noise_only_perturbs_ground_truth_inputs_in_training(toy):
     model.eval()
     _, fed = unroll(model, batch, task, cfg, KIN, torch.Generator().manual_seed(0), return_inputs=True)
     torch.testing.assert_close(fed[:, gt], clean[:, gt])
+
+
+def test_validation_uses_fresh_episodes_when_the_task_has_a_kinematic_error():
+    import numpy as np
+
+    from stm.train import VAL_SEED, Validation
+
+    class ToyWithError(ToyReach):
+        def kinematic_error(self, tip, episode):
+            return float(np.linalg.norm(tip[-1] - episode.psi[-1]))
+
+    plain, scored = ToyReach(n_demos=4), ToyWithError(n_demos=4)
+    demos = plain.demos(0)
+    replay = Validation.build(plain, demos, 3)
+    assert replay.demos is demos and len(replay.episodes) == 3
+    np.testing.assert_array_equal(replay.episodes[0].q0, demos.q[0, 0])
+    fresh = Validation.build(scored, demos, 3)
+    assert fresh.demos is None
+    np.testing.assert_array_equal(fresh.episodes[0].q0, scored.episodes(3, VAL_SEED)[0].q0)
+    assert not any(np.allclose(ep.q0, demos.q[i, 0]) for i, ep in enumerate(fresh.episodes))

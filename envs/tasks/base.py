@@ -140,6 +140,11 @@ class Task:
         'success' (0.0 or 1.0) where the task has a success predicate."""
         raise NotImplementedError
 
+    def kinematic_error(self, tip: np.ndarray, episode: Episode) -> float | None:
+        """A cheap, physics-free error (m, lower is better) of a tool-tip path (H+1, 3) on an
+        episode: what validation during training tracks. None where the task has none."""
+        return None
+
     def config(self) -> dict[str, Any]:
         """Everything that shapes the demonstrations (hashed for the dataset cache)."""
         raise NotImplementedError

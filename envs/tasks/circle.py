@@ -134,6 +134,13 @@ class Circle(Task):
         q0, _, _ = solve_tool_down_path(paths, np.repeat(NEUTRAL_Q[None], len(radii), axis=0))
         return q0[:, 0]
 
+    def kinematic_error(self, tip: np.ndarray, episode: Episode) -> float:
+        """Radial RMSE plus the arc length still missing to one full turn (m): a path that
+        stays put has no radial error but draws nothing."""
+        r = float(episode.info["radius"])
+        m = circle_metrics(tip, r)
+        return m["radial_rmse"] + 2 * np.pi * r * max(0.0, 1.0 - m["turns"])
+
     def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
         q = check_trajectory(q)
         return self.play_metrics(q, float(episode.info["radius"]))

@@ -348,6 +348,11 @@ class PickPlace(Task):
         return [Episode(q0=q0[i], psi=np.repeat(goals[i][None], H + 1, axis=0), horizon=H,
                         info={"goal": goals[i].tolist(), "level": _level_of(goals[i])}) for i in range(n)]
 
+    def kinematic_error(self, tip: np.ndarray, episode: Episode) -> float:
+        """Closest approach of the tip to where it must release the block at the (last) goal."""
+        place = np.asarray(episode.psi[-1], float) + [0.0, 0.0, GRASP_HEIGHT]
+        return float(np.linalg.norm(tip - place, axis=-1).min())
+
     def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
         """Metrics: success, final_distance (|block bottom - goal|, m), xy_error, z_error (m),
         tip_to_block (m). The goal is info["goal"], else the episode's last psi row."""

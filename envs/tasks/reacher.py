@@ -199,6 +199,10 @@ class Reacher(Task):
         return [Episode(q0=q0[i], psi=np.repeat(goals[i][None], horizon + 1, axis=0), horizon=horizon,
                         info={"goal": goals[i].tolist()}) for i in range(n)]
 
+    def kinematic_error(self, tip: np.ndarray, episode: Episode) -> float:
+        """Distance of the path's last point to the (last) goal."""
+        return float(np.linalg.norm(tip[-1] - np.asarray(episode.psi[-1])))
+
     def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
         q = check_trajectory(q)
         d = self.final_distance(q, np.asarray(episode.psi[-1]))
