@@ -8,6 +8,7 @@ log through MlflowClient (with retries on SQLite lock contention)."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import multiprocessing as mp
@@ -32,7 +33,7 @@ from experiments.tracking import (
     set_tags,
     tracking_uri,
 )
-from experiments.worker import CellResult, run_cell
+from experiments.worker import CellResult, mark_killed, run_cell
 
 log = logging.getLogger(__name__)
 EXPERIMENT = "ablation"
@@ -139,7 +140,9 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
         else:
             _run_parallel(todo, uri, workers, outcome, bar, level, interactive)
     except KeyboardInterrupt:
-        # interrupted cells stay RUNNING with their last checkpoint: a re-run resumes them
+        # interrupted cells are KILLED with their last checkpoint artifact: a re-run resumes them
+        done = {r.run_id for r in outcome.results}
+        mark_killed(client, [run_id for _, run_id in todo if run_id not in done])
         client.set_terminated(parent_id, "KILLED")
         raise
     finally:
@@ -161,11 +164,23 @@ def _record(outcome: StudyOutcome, res: CellResult, bar, total: int, interactive
                  f": {res.error}" if res.error else "")
 
 
+@contextlib.contextmanager
+def _stop_on_interrupt(pool: ProcessPoolExecutor):
+    """On Ctrl-C, stop the workers now (the pool's own exit would run every queued cell first)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        for proc in list((pool._processes or {}).values()):  # no public API to stop running calls
+            proc.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+
+
 def _run_parallel(todo, uri, workers, outcome, bar, level, interactive) -> None:
     ctx = mp.get_context("spawn")  # fresh interpreters: no forked torch/pybullet/sqlite state
     pending = {}
     try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool, _stop_on_interrupt(pool):
             for cell, run_id in todo:
                 fut = pool.submit(run_cell, cell.to_dict(), uri, run_id, False, level, TORCH_THREADS)
                 pending[fut] = (cell, run_id)

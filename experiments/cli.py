@@ -1,7 +1,8 @@
 """`python -m experiments {ablation,sweep,smoothing,idm,ui}`.
 
 Exit codes: 0 success; 1 some cells/trials failed (summary printed); 2 bad configuration
-(one line naming the field and its allowed values, printed before anything is written).
+(one line naming the field and its allowed values, printed before anything is written);
+3 a store (MLflow, Optuna) did not answer after bounded retries (nothing written); 130 Ctrl-C.
 """
 
 from __future__ import annotations
@@ -118,19 +119,33 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
 
+    queue = None
+    if getattr(args, "worker", False):
+        from experiments.queue import resolve_queue
+
+        try:
+            queue = resolve_queue(args.queue)
+        except ConfigError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+    from experiments.stores import StoreUnavailable, wait_for_stores
+    from experiments.tracking import tracking_uri
+
+    try:  # a locked store or a server that is down: bounded retries, then one line, nothing written
+        wait_for_stores(tracking_uri(), tuple(u for u in (queue, cfg.sweep.storage if args.command == "sweep"
+                                                           else None) if u))
+    except StoreUnavailable as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
+
     if args.command == "ablation":
         from experiments.ablation import run_study, summary_text
         from experiments.tracking import Client
 
         try:
-            if args.worker:
-                from experiments.queue import resolve_queue, run_worker
+            if queue:
+                from experiments.queue import run_worker
 
-                try:
-                    queue = resolve_queue(args.queue)
-                except ConfigError as e:
-                    print(f"error: {e}", file=sys.stderr)
-                    return 2
                 outcome = run_worker(cfg, queue)
             else:
                 outcome = run_study(cfg)

@@ -89,6 +89,9 @@ def run_cell(cell_dict: dict[str, Any], uri: str, run_id: str, progress: bool = 
         client.set_terminated(run_id, "FINISHED")
         return CellResult(cell.key, run_id, "FINISHED", metrics=metrics, seconds=time.perf_counter() - start,
                           resumed_from=resumed_from)
+    except KeyboardInterrupt:  # Ctrl-C: KILLED, resumable from the last checkpoint artifact
+        mark_killed(client, [run_id])
+        raise
     except Exception as exc:
         text = f"{type(exc).__name__}: {exc}"
         log.error("cell %s failed: %s", cell.key, text)
@@ -102,6 +105,17 @@ def run_cell(cell_dict: dict[str, Any], uri: str, run_id: str, progress: bool = 
                           seconds=time.perf_counter() - start, resumed_from=resumed_from)
 
 
+def mark_killed(client: Client, run_ids: list[str]) -> None:
+    """Interrupted cells: RUNNING runs become KILLED (a re-run resumes them from their checkpoint)."""
+    for run_id in run_ids:
+        try:
+            if client.get_run(run_id).info.status == "RUNNING":
+                set_tags(client, run_id, {"error": "interrupted (Ctrl-C); re-run the study to resume"})
+                client.set_terminated(run_id, "KILLED")
+        except Exception:  # best effort on the way out; the run stays resumable either way
+            log.warning("could not mark run %s KILLED", run_id)
+
+
 def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, progress: bool
                         ) -> tuple[dict[str, float], int]:
     import numpy as np
@@ -109,7 +123,7 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
     from envs.datasets import load_demos
     from envs.tasks import get_task
     from experiments.evaluation import evaluate_model, rollout_arrays, rollout_figure
-    from stm.checkpoint import load_checkpoint
+    from stm.checkpoint import CheckpointError, load_checkpoint
     from stm.config import ModelConfig, TrainConfig
     from stm.train import train
 
@@ -125,9 +139,15 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
     fetched = fetch_checkpoint(client, run_id, work / "download")
     if fetched is not None:
         fetched.replace(ckpt_path)
-        resumed_from = int(load_checkpoint(ckpt_path)["iteration"])
-        log.info("cell %s resumes from its checkpoint at iteration %d", cell.key, resumed_from)
-        set_tags(client, run_id, {"resumed_from_iteration": resumed_from})
+        try:
+            resumed_from = int(load_checkpoint(ckpt_path)["iteration"])
+        except CheckpointError as exc:  # truncated, corrupt or another format version: start over
+            log.warning("cell %s: checkpoint artifact unusable (%s); retraining from scratch", cell.key, exc)
+            ckpt_path.unlink()
+            set_tags(client, run_id, {"checkpoint_discarded": str(exc)[:500]})
+        else:
+            log.info("cell %s resumes from its checkpoint at iteration %d", cell.key, resumed_from)
+            set_tags(client, run_id, {"resumed_from_iteration": resumed_from})
 
     task = get_task(cell.task)
     demos = load_demos(task, seed=cell.dataset_seed)
@@ -136,7 +156,8 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
     seed_everything(cell.seed)
 
     # a resumed run recomputes the steps after its checkpoint exactly: drop the ones already logged
-    logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) if resumed_from else -1
+    # (a retrain from scratch recomputes the same values too: the seed is the cell's)
+    logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) if fetched is not None else -1
     buffer = MetricBuffer(client, run_id, skip_through=logged)
 
     def on_checkpoint(path: Path, iteration: int) -> None:
