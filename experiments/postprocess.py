@@ -355,12 +355,21 @@ def add_parsers(sub) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    """Run `args.command` (smoothing | idm); exit codes like the ablation's (2: bad config)."""
+    """Run `args.command` (smoothing | idm); exit codes like the ablation's: 1 the study failed
+    (recorded on its run), 2 bad config, 3 store unavailable."""
     try:
         cfg = load_config(args.command, args.profile, args.overrides)
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    from experiments.stores import StoreUnavailable, wait_for_stores
+    from experiments.tracking import tracking_uri
+
+    try:  # the ablation's probe: a locked store or a server that is down is one line, exit 3
+        wait_for_stores(tracking_uri())
+    except StoreUnavailable as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
     try:
         run_id, name, metrics = run_postprocess(cfg)
     except ConfigError as e:

@@ -207,3 +207,10 @@ def test_a_failing_study_is_recorded_and_a_rerun_clears_it(tmp_path, monkeypatch
     assert main(["smoothing", "--profile", "smoke"]) == 0
     run = _parent(MlflowClient(uri), "smoothing")  # the same study's run, now finished
     assert run.info.status == "FINISHED" and run.data.tags["error"] == "" and "gd/mean_sq_jerk" in run.data.metrics
+
+
+def test_unreachable_store_is_exit_3(monkeypatch, capsys):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:1")  # nothing listens on port 1
+    monkeypatch.setenv("ACRMDN_STORE_ATTEMPTS", "1")
+    assert main(["idm", "--profile", "smoke"]) == 3
+    assert capsys.readouterr().err.count("\n") == 1
