@@ -105,3 +105,52 @@ def test_two_workers_one_killed_mid_trial(postgres, mlflow_server, tmp_path):
     killed_run = by_run[by_number[killed_trial].user_attrs["mlflow_run_id"]]
     assert "no heartbeat" in killed_run.data.tags["error"]
     assert by_run[retries[0].user_attrs["mlflow_run_id"]].data.tags["retry_of_trial"] == str(killed_trial)
+
+
+def test_ablation_workers_share_a_cell_queue_and_one_is_killed(postgres, mlflow_server, tmp_path):
+    """`ablation --worker --queue postgresql://...` on two "hosts"; the killed worker's cell is
+    re-queued by heartbeat and resumed from its checkpoint artifact (served by the tracking
+    server) in the same MLflow run."""
+    import optuna
+    from mlflow.tracking import MlflowClient
+    from optuna.trial import TrialState
+
+    queue = postgres.url("optuna")
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MLFLOW_TRACKING_URI": mlflow_server.url}
+    args = ["ablation", "--profile", "smoke", "--worker", "--queue", queue, "--study-name", "it-queue",
+            "--set", "train.iters=150", "--set", "train.val_every=0", "--set", "eval.figures=0",
+            "--set", "eval.rollouts=2", "--set", "sweep.heartbeat=1", "--set", "sweep.grace_period=4"]
+    client = MlflowClient(mlflow_server.url)
+    survivor = _worker(args, tmp_path, env, tmp_path / "a.log")
+    victim = _worker(args, tmp_path, env, tmp_path / "b.log")
+    killed = None
+    try:
+        deadline = time.monotonic() + 300
+        while killed is None and time.monotonic() < deadline and victim.poll() is None:
+            time.sleep(0.3)
+            exp = client.get_experiment_by_name("ablation")
+            if exp is None:
+                continue
+            for run in client.search_runs([exp.experiment_id], "tags.role = 'cell'"):
+                if run.data.tags.get("worker", "").endswith(f":{victim.pid}") and \
+                        int(run.data.tags.get("checkpoint_iteration", 0)) >= 5:
+                    os.killpg(victim.pid, signal.SIGKILL)
+                    killed = run
+                    break
+        assert killed is not None, (tmp_path / "b.log").read_text()[-3000:]
+        victim.wait()
+        assert survivor.wait(timeout=400) == 0, (tmp_path / "a.log").read_text()[-4000:]
+    finally:
+        _stop(victim)
+        _stop(survivor)
+    exp = client.get_experiment_by_name("ablation")
+    parents = client.search_runs([exp.experiment_id], "tags.role = 'parent' and tags.study_name = 'it-queue'")
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    cells = client.search_runs([exp.experiment_id], f"tags.`mlflow.parentRunId` = '{parents[0].info.run_id}'")
+    assert len(cells) == 2 and {r.info.status for r in cells} == {"FINISHED"}
+    resumed = client.get_run(killed.info.run_id)
+    assert int(resumed.data.tags["resumed_from_iteration"]) >= int(killed.data.tags["checkpoint_iteration"])
+    assert resumed.data.metrics["train/iterations"] == 150
+    entries = optuna.load_study(study_name="ablation-cells:it-queue", storage=queue).get_trials(deepcopy=False)
+    assert [t.state for t in entries].count(TrialState.FAIL) == 1
+    assert not [t for t in entries if t.state in (TrialState.RUNNING, TrialState.WAITING)]
