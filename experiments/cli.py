@@ -21,6 +21,12 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"error: {message} (see `python -m experiments {self.prog.split()[-1]} --help`)\n")
 
 
+def _one_line(message: str) -> str:
+    """Field names and values come from the command line: keep their line breaks from
+    splitting the one-line error."""
+    return message.replace("\r", "\\r").replace("\n", "\\n")
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="quick", help=f"config profile: {', '.join(available_profiles())}")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
@@ -116,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = load_config(args)
     except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(_one_line(f"error: {e}"), file=sys.stderr)
         return 2
 
     queue = None
@@ -126,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             queue = resolve_queue(args.queue)
         except ConfigError as e:
-            print(f"error: {e}", file=sys.stderr)
+            print(_one_line(f"error: {e}"), file=sys.stderr)
             return 2
     from experiments.stores import StoreUnavailable, wait_for_stores
     from experiments.tracking import tracking_uri
@@ -135,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         wait_for_stores(tracking_uri(), tuple(u for u in (queue, cfg.sweep.storage if args.command == "sweep"
                                                            else None) if u))
     except StoreUnavailable as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(_one_line(f"error: {e}"), file=sys.stderr)
         return 3
 
     if args.command == "ablation":

@@ -43,9 +43,9 @@ not_an_int = st.tuples(st.sampled_from(sorted(INT_FIELDS)), words.filter(lambda 
                        ).map(lambda fv: (f"{fv[0]}={fv[1]}", fv[0]))
 not_a_choice = st.sampled_from(sorted(CHOICES.items())).flatmap(
     lambda kv: words.filter(lambda t: _value(t) not in kv[1]).map(lambda t: (f"{kv[0]}={t}", kv[0])))
-unknown_field = st.tuples(st.sampled_from(SECTIONS), st.from_regex(r"[a-z][a-z_]{0,12}", fullmatch=True)).filter(
-    lambda sf: f"{sf[0]}.{sf[1]}" not in KNOWN and sf[1] not in _fields(sf[0])).map(
-    lambda sf: (f"{sf[0]}.{sf[1]}=1", f"{sf[0]}.{sf[1]}"))
+unknown_field = st.tuples(st.sampled_from(SECTIONS), st.from_regex(r"[a-z][a-z_\n\r\t ]{0,12}", fullmatch=True)).filter(
+    lambda sf: f"{sf[0]}.{sf[1].strip()}" not in KNOWN and sf[1].strip() not in _fields(sf[0])).map(
+    lambda sf: (f"{sf[0]}.{sf[1]}=1", f"{sf[0]}.{sf[1].strip()}".replace("\r", "\\r").replace("\n", "\\n")))
 
 
 def _fields(section: str) -> set[str]:
