@@ -265,12 +265,16 @@ def run_postprocess(cfg: PostConfig, progress: bool | None = None) -> tuple[str,
         log_params,
         provenance_params,
         set_tags,
+        sqlite_path,
         tracking_uri,
     )
 
     start = time.perf_counter()
-    client = Client(tracking_uri())
-    found = find_stm_checkpoint(client) if cfg.skeletons != "stand-in" else None
+    uri = tracking_uri()
+    db = sqlite_path(uri)
+    fresh = db is not None and not db.exists()  # no store yet: no STM in it
+    client = None if fresh and cfg.skeletons == "stm" else Client(uri)  # (opening one creates it)
+    found = find_stm_checkpoint(client) if cfg.skeletons != "stand-in" and not fresh else None
     if cfg.skeletons == "stm" and found is None:
         raise ConfigError(f"skeletons: 'stm' needs a FINISHED ablation run for {STM_TASK} / {STM_VARIANT} with a "
                           "checkpoint artifact in the store; allowed: auto, stand-in")

@@ -158,6 +158,7 @@ def test_skeletons_from_an_ablation_checkpoint(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert main(["smoothing", "--profile", "smoke", "--set", "skeletons=stm"]) == 2  # none in the store yet
     assert "skeletons: 'stm' needs" in capsys.readouterr().err
+    assert not (tmp_path / "mlflow.db").exists()  # the error came before anything was written
     client = MlflowClient(uri)
     torch.manual_seed(0)
     run_id = _fake_ablation_cell(client, tmp_path)
