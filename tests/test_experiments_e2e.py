@@ -100,8 +100,8 @@ def test_rerun_skips_every_finished_cell(smoke_study):
 def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name", "killed",
-            "--set", "train.iters=30", "--set", "train.val_every=0", "--set", "eval.figures=0",
-            "--set", "eval.rollouts=2"]
+            "--set", "train.iters=1500", "--set", "train.checkpoint_every=50", "--set", "train.val_every=0",
+            "--set", "eval.figures=0", "--set", "eval.rollouts=2"]  # long enough to be caught mid-training
     proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path, env=_env(tmp_path),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     run_id, deadline = None, time.monotonic() + 300
@@ -113,7 +113,7 @@ def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
                                           "tags.role = 'cell'")
             except Exception:  # store not created yet
                 continue
-            if runs and int(runs[0].data.tags.get("checkpoint_iteration", 0)) >= 5:
+            if runs and int(runs[0].data.tags.get("checkpoint_iteration", 0)) >= 50:
                 run_id = runs[0].info.run_id
                 os.killpg(proc.pid, signal.SIGKILL)
                 break
@@ -125,16 +125,16 @@ def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
     killed = client.get_run(run_id)
     assert killed.info.status == "RUNNING"
     killed_at = int(killed.data.tags["checkpoint_iteration"])
-    assert killed_at < 30
+    assert killed_at < 1500
 
     done = _cli(args, tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     run = client.get_run(run_id)
     assert run.info.status == "FINISHED"
     assert int(run.data.tags["resumed_from_iteration"]) >= killed_at
-    assert run.data.metrics["train/iterations"] == 30
+    assert run.data.metrics["train/iterations"] == 1500
     steps = [m.step for m in client.get_metric_history(run_id, "train/loss")]
-    assert steps == sorted(set(steps)) and steps[-1] == 30  # continued, nothing logged twice
+    assert steps == sorted(set(steps)) and steps[-1] == 1500  # continued, nothing logged twice
     cells = client.search_runs([run.info.experiment_id], "tags.role = 'cell'")
     assert [r.info.run_id for r in cells] == [run_id]
 
