@@ -74,14 +74,14 @@ def joint_limits(path: str | Path = URDF_PATH) -> JointLimits:
     root = ET.fromstring(read_urdf(path))
     by_name = {j.get("name"): j.find("limit") for j in root.iter("joint")}
     rows = [[float(by_name[n].get(k)) for k in ("lower", "upper", "velocity", "effort")] for n in ARM_JOINTS]
-    lo, hi, vel, eff = (np.array(c) for c in zip(*rows))
+    lo, hi, vel, eff = (np.array(c) for c in zip(*rows, strict=True))
     return JointLimits(lo, hi, vel, eff)
 
 
 LIMITS = joint_limits()
 
 
-def load_in_pybullet(client_id: int, path: str | Path = URDF_PATH, base_position=(0.0, 0.0, 0.0)) -> "PybulletRobot":
+def load_in_pybullet(client_id: int, path: str | Path = URDF_PATH, base_position=(0.0, 0.0, 0.0)) -> PybulletRobot:
     """Load the Sawyer (fixed base) into a connected pybullet client."""
     import pybullet as p
 
@@ -120,7 +120,7 @@ class PybulletRobot:
         """Teleport the arm to `q` (7,) and the fingers to `finger`, at rest."""
         import pybullet as p
 
-        for j, v in zip(self.arm, q):
+        for j, v in zip(self.arm, q, strict=True):
             p.resetJointState(self.body, j, float(v), 0.0, physicsClientId=self.client)
         for j in self.fingers:
             p.resetJointState(self.body, j, float(finger), 0.0, physicsClientId=self.client)
