@@ -27,6 +27,7 @@ import torch
 
 from envs.kinematics import tip_position_np
 from envs.sim import Scene
+from stm.figures import save_figure
 from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, Tracking, save_idm, track_plan, train_idm
 from stm.idm_data import ExplorationConfig, idm_features, load_or_collect
 from stm.smoothing import smooth_gd
@@ -262,10 +263,4 @@ def plot_tracking(trackings: dict[str, list[Tracking]], plans: np.ndarray, posit
     axes[0].legend(fontsize=7)
     fig.suptitle("Tool-tip tracking: plan vs IDM torque control")
     fig.tight_layout()
-    stem = Path(path_stem)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    paths = [str(stem.with_suffix(ext)) for ext in (".png", ".pdf")]
-    for p in paths:
-        fig.savefig(p, dpi=130)
-    plt.close(fig)
-    return paths
+    return save_figure(fig, path_stem)

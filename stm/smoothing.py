@@ -31,6 +31,7 @@ import scipy.linalg
 import torch
 
 from envs.kinematics import SawyerKinematics, default_kinematics
+from stm.figures import save_figure
 
 log = logging.getLogger(__name__)
 
@@ -256,10 +257,4 @@ def plot_tip_paths(variants: dict[str, np.ndarray], goals=None, path_stem: str |
             ax.legend(loc="upper left", fontsize=7)
     fig.suptitle("Tool-tip paths before and after smoothing")
     fig.tight_layout()
-    stem = Path(path_stem)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    paths = [str(stem.with_suffix(ext)) for ext in (".png", ".pdf")]
-    for p in paths:
-        fig.savefig(p, dpi=130)
-    plt.close(fig)
-    return paths
+    return save_figure(fig, path_stem)
