@@ -34,6 +34,16 @@ def variant_color(variant: str, variants: list[str]) -> tuple:
     return cmap(variants.index(variant) % 10 if variant in variants else 9)
 
 
+def panel_grid(n: int, panel_w: float, panel_h: float, max_cols: int = 3):
+    """A figure with n panels in rows of at most max_cols; unused axes switched off."""
+    cols = min(max_cols, n)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(panel_w * cols, panel_h * rows), squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.set_axis_off()
+    return fig, axes
+
+
 def save(fig, folder: Path, name: str, title: str, partial: list[str] | None = None) -> FigureResult:
     folder.mkdir(parents=True, exist_ok=True)
     paths = [folder / f"{name}.png", folder / f"{name}.pdf"]

@@ -3,14 +3,13 @@ intermediate values (the pruning signal) per trial."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import matplotlib.ticker
 import numpy as np
 import pandas as pd
 
-from reports.plotting import FigureResult, gap, plt, save
+from reports.plotting import FigureResult, gap, panel_grid, plt, save
 from reports.store import Study
 
 
@@ -81,11 +80,7 @@ def sweep_params(study: Study, folder: Path) -> FigureResult:
         [c for c in df.columns if c.startswith("params.") and df[c].nunique(dropna=True) > 1]
     if found is None or not params:
         return gap(name, title, "no objective or no varied params among the trials")
-    cols = min(3, len(params))
-    rows = math.ceil(len(params) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.3 * rows), squeeze=False)
-    for ax in axes.flat[len(params):]:
-        ax.set_axis_off()
+    fig, axes = panel_grid(len(params), 3.6, 3.3)
     for ax, p in zip(axes.flat, params, strict=False):
         vals = pd.to_numeric(df[p], errors="coerce")
         if vals.isna().any():  # categorical: positions by sorted category

@@ -10,7 +10,7 @@ import matplotlib.lines
 import numpy as np
 
 from reports import paper
-from reports.plotting import FigureResult, gap, mark_gap, plt, save, variant_color
+from reports.plotting import FigureResult, gap, mark_gap, panel_grid, plt, save, variant_color
 from reports.store import Study
 
 CHANGING_GOAL_TASKS = ("reacher-changing-goal", "pick-place-changing-goal")
@@ -72,11 +72,7 @@ def circles(study: Study, folder: Path) -> FigureResult:
                     if not math.isnan(float(r))})
     if not radii:  # no radius array: one panel per episode index
         radii = [None]
-    cols = min(3, len(radii))
-    rows = math.ceil(len(radii) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.0 * rows), squeeze=False)
-    for ax in axes.flat[len(radii):]:
-        ax.set_axis_off()
+    fig, axes = panel_grid(len(radii), 4.2, 4.0)
     for ax, r in zip(axes.flat, radii, strict=False):
         drew_ideal = False
         for v, (_, arrays) in reps.items():
