@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from envs.datasets import cache_paths, default_cache_dir, load_demos
+from envs.datasets import entry_paths, load_demos
 from envs.tasks import TASKS, Task, UnknownTaskError, get_task
 
 
@@ -39,7 +39,7 @@ def _describe(task: Task, seed: int, cache_dir: Path | None) -> dict[str, Any]:
         "generation_seconds": meta.get("generation_seconds"),
         "episode_horizon": episode.horizon,
         "episode_info_keys": sorted(episode.info),
-        "cache": str(cache_paths(task.model_task or task.name, seed, cache_dir or default_cache_dir())[0]),
+        "cache": str(entry_paths(task, seed, cache_dir)[0]),
         "config_hash": meta.get("config_hash"),
     }
 

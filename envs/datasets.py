@@ -5,6 +5,8 @@ A cache entry is two files in the cache directory:
     <task>_seed<seed>.json  metadata: task, config and config hash, seed, format version,
                             counts, expert success, rejections, generation seconds, and the
                             SHA-256 of the array bytes
+A task built with non-default options (e.g. Reacher(n_demos=90)) has its own entry,
+<task>_seed<seed>_<config hash prefix>, beside the default one.
 The JSON is written last (atomically), so a half-written entry never validates. An entry
 that is corrupt, truncated, of another format version or from another task config is
 reported in one warning line and rebuilt; it is never used.
@@ -56,9 +58,30 @@ def arrays_hash(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def cache_paths(task_name: str, seed: int, cache_dir: Path) -> tuple[Path, Path]:
-    stem = f"{task_name}_seed{seed}"
+def cache_paths(task_name: str, seed: int, cache_dir: Path, variant: str = "") -> tuple[Path, Path]:
+    """The entry's files; `variant` (a config hash prefix) names a non-default task config's own entry."""
+    stem = f"{task_name}_seed{seed}" + (f"_{variant}" if variant else "")
     return cache_dir / f"{stem}.npz", cache_dir / f"{stem}.json"
+
+
+def entry_paths(task: Task, seed: int, cache_dir: Path | None = None) -> tuple[Path, Path]:
+    """Where load_demos(task, seed, cache_dir) keeps its entry (the model task's, for evaluation-only tasks)."""
+    if task.model_task and task.model_task != task.name:
+        from envs.tasks.base import TASKS
+
+        task = _model_task_of(task, TASKS)
+    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return cache_paths(task.name, seed, cache_dir, _variant(task, config_hash(task.config())))
+
+
+def _variant(task: Task, chash: str) -> str:
+    """"" for the task's default config, else a hash prefix: a task built with other options
+    (e.g. more demos) gets its own cache entry instead of overwriting the default one."""
+    try:
+        default = type(task)().config()
+    except TypeError:  # a task without a no-argument constructor
+        return chash[:10]
+    return "" if config_hash(default) == chash else chash[:10]
 
 
 class _Invalid(Exception):
@@ -129,10 +152,10 @@ def load_demos(task: Task, seed: int = 0, cache_dir: Path | None = None) -> Demo
         task = _model_task_of(task, TASKS)
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     cache_dir.mkdir(parents=True, exist_ok=True)
-    npz_path, meta_path = cache_paths(task.name, seed, cache_dir)
     chash = config_hash(task.config())
+    npz_path, meta_path = cache_paths(task.name, seed, cache_dir, _variant(task, chash))
     # one generator per entry at a time; other processes wait and then read its result
-    with open(cache_dir / f".{task.name}_seed{seed}.lock", "w") as lock:
+    with open(npz_path.with_name(f".{npz_path.stem}.lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if meta_path.exists() or npz_path.exists():
             try:

@@ -9,6 +9,7 @@ log through MlflowClient (with retries on SQLite lock contention)."""
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
 import multiprocessing as mp
@@ -92,16 +93,17 @@ def prepare_runs(client: Client, experiment_id: str, parent_id: str, cells: list
     return todo, skipped
 
 
-def prepare_datasets(tasks: list[str]) -> None:
-    """Build (or validate) each training task's cached demonstrations once, in the main
-    process, so that parallel workers never generate the same dataset twice."""
+def prepare_datasets(cells: list[Cell]) -> None:
+    """Build (or validate) the cached demonstrations of the cells' training tasks once, in the
+    main process, so that parallel workers never generate the same dataset twice."""
     from envs.datasets import load_demos
     from envs.tasks import get_task
 
-    for name in tasks:
+    datasets = {(c.task, json.dumps(c.data, sort_keys=True), c.dataset_seed): c for c in cells}
+    for (name, _, seed), cell in sorted(datasets.items()):
         start = time.perf_counter()
         try:
-            demos = load_demos(get_task(name), seed=0)
+            demos = load_demos(get_task(name, **cell.data), seed=seed)
         except Exception as exc:  # the task's cells will fail with this error and be reported
             log.error("demonstrations for %s could not be built: %s: %s", name, type(exc).__name__, exc)
             continue
@@ -123,7 +125,7 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     todo, outcome.skipped = prepare_runs(client, experiment_id, parent_id, cells)
     for key in outcome.skipped:
         log.info("skip %s: FINISHED with the same config hash", key)
-    prepare_datasets(sorted({cell.task for cell, _ in todo}))
+    prepare_datasets([cell for cell, _ in todo])
     workers = cfg.workers or default_workers()
     workers = max(1, min(workers, len(todo))) if todo else 1
     interactive = sys.stderr.isatty() if progress is None else progress

@@ -4,7 +4,7 @@ model/train/eval configs and the hash that identifies it across re-runs."""
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from experiments.config import StudyConfig, config_hash, evaluation_tasks
@@ -22,6 +22,7 @@ class Cell:
     profile: str
     study_name: str
     dataset_seed: int = 0  # the demonstrations are the same for every training seed
+    data: dict[str, Any] = field(default_factory=dict)  # training task's constructor options (e.g. n_demos)
 
     @property
     def key(self) -> str:
@@ -30,9 +31,12 @@ class Cell:
     @property
     def resolved(self) -> dict[str, Any]:
         """Everything that shapes this cell's results: hashed, logged as params and config.json."""
-        return {"task": self.task, "variant": self.variant, "seed": self.seed, "model": self.model,
-                "train": self.train, "eval": self.eval, "eval_tasks": list(self.eval_tasks),
-                "dataset_seed": self.dataset_seed}
+        out = {"task": self.task, "variant": self.variant, "seed": self.seed, "model": self.model,
+               "train": self.train, "eval": self.eval, "eval_tasks": list(self.eval_tasks),
+               "dataset_seed": self.dataset_seed}
+        if self.data:  # absent when default: cells of profiles without data options keep their hashes
+            out["data"] = self.data
+        return out
 
     @property
     def config_hash(self) -> str:
@@ -68,5 +72,5 @@ def build_cells(cfg: StudyConfig) -> list[Cell]:
                 model, train = resolve_stm_configs(cfg, task, variant, seed)
                 cells.append(Cell(task=task, variant=variant, seed=seed, model=model.to_dict(),
                                   train=train.to_dict(), eval=eval_dict, eval_tasks=eval_tasks,
-                                  profile=cfg.profile, study_name=study_name))
+                                  profile=cfg.profile, study_name=study_name, data=cfg.data_options(task)))
     return cells

@@ -74,12 +74,16 @@ class StudyConfig:
     study_name: str = ""  # "" -> derived from the profile (and the config hash if overridden)
     model: dict[str, Any] = field(default_factory=dict)  # -> stm.config.ModelConfig
     train: dict[str, Any] = field(default_factory=dict)  # -> stm.config.TrainConfig
-    per_task: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)  # task -> {model, train}
+    per_task: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)  # task -> {model, train, data}
     eval: EvalConfig = field(default_factory=EvalConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return _jsonable(dataclasses.asdict(self))
+
+    def data_options(self, task: str) -> dict[str, Any]:
+        """Constructor options of a training task's dataset (per_task.<task>.data; {} = the task's defaults)."""
+        return dict(self.per_task.get(task, {}).get("data", {}))
 
     def stm_dicts(self, task: str) -> tuple[dict[str, Any], dict[str, Any]]:
         """Model and train overrides for one training task (profile-wide, then per-task)."""
@@ -240,6 +244,31 @@ def _check_stm_section(name: str, values: dict[str, Any], cls: type) -> dict[str
     return out
 
 
+def _check_data_section(name: str, task: str, values: dict[str, Any]) -> dict[str, Any]:
+    """Dataset options of a training task: keyword arguments of its constructor (e.g. n_demos),
+    checked by building the task (it validates its own values)."""
+    import inspect
+
+    from envs.tasks import get_task
+    from envs.tasks.base import TASKS
+
+    if not isinstance(values, dict):
+        raise ConfigError(f"{name}: expected a section of FIELD = VALUE")
+    params = inspect.signature(TASKS[task].__init__).parameters
+    allowed = [k for k in params if k != "self"]
+    out = {}
+    for key, value in values.items():
+        if key not in allowed:
+            raise ConfigError(f"{name}.{key}: unknown field; allowed: {', '.join(allowed) or 'none'}")
+        default = params[key].default
+        out[key] = _coerce(f"{name}.{key}", value, default, "") if default is not inspect.Parameter.empty else value
+    try:
+        get_task(task, **out)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"{name}: {e}") from None
+    return out
+
+
 def known_tasks() -> dict[str, str]:
     """Registered task name -> its model_task."""
     from envs.tasks import TASKS  # importing the package registers the built-in tasks
@@ -277,13 +306,15 @@ def from_dict(raw: dict[str, Any]) -> StudyConfig:
     per_task: dict[str, dict[str, dict[str, Any]]] = {}
     for task, sections in per_task_raw.items():
         _check_choice("per_task", task, tasks_allowed)
-        unknown = sorted(set(sections) - {"model", "train"})
+        unknown = sorted(set(sections) - {"model", "train", "data"})
         if unknown:
-            raise ConfigError(f"per_task.{task}.{unknown[0]}: unknown section; allowed: model, train")
+            raise ConfigError(f"per_task.{task}.{unknown[0]}: unknown section; allowed: model, train, data")
         per_task[task] = {
             "model": _check_stm_section(f"per_task.{task}.model", sections.get("model", {}), ModelConfig),
             "train": _check_stm_section(f"per_task.{task}.train", sections.get("train", {}), TrainConfig),
         }
+        if sections.get("data"):
+            per_task[task]["data"] = _check_data_section(f"per_task.{task}.data", task, sections["data"])
 
     study_defaults = {"tasks": tuple(tasks_allowed), "variants": tuple(known_variants())}
     fields = {f.name for f in dataclasses.fields(StudyConfig)} - {"eval", "sweep", "model", "train", "per_task"}

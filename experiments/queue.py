@@ -164,7 +164,7 @@ def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
     study = optuna.create_study(study_name=QUEUE_PREFIX + study_name, storage=storage, load_if_exists=True)
     added = enqueue_missing(study, cells, finished_hashes(client, experiment_id, parent_id))
     log.info("study %r: %d cells, %d newly queued; queue %s", study_name, len(cells), added, queue_url)
-    prepare_datasets(sorted({c.task for c in cells}))  # cached per host: built once, not in every process
+    prepare_datasets(cells)  # cached per host: built once, not in every process
     level = logging.getLogger().getEffectiveLevel()
     args = (cfg.to_dict(), queue_url, uri, experiment_id, parent_id, level)
     workers = max(1, cfg.workers or 1)

@@ -292,7 +292,7 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
         log_params(client, run_id, {**{f"trial.{k}": v for k, v in params.items()},
                                     **flatten({"model": model_cfg.to_dict(), "train": train_cfg.to_dict()}),
                                     "task": cfg.sweep.task, "variant": cfg.sweep.variant, **provenance_params()})
-        task = get_task(cfg.sweep.task)
+        task = get_task(cfg.sweep.task, **cfg.data_options(cfg.sweep.task))
         demos = load_demos(task, seed=0)
         seed_everything(seed)
         buffer = MetricBuffer(client, run_id)

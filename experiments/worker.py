@@ -149,7 +149,7 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
             log.info("cell %s resumes from its checkpoint at iteration %d", cell.key, resumed_from)
             set_tags(client, run_id, {"resumed_from_iteration": resumed_from})
 
-    task = get_task(cell.task)
+    task = get_task(cell.task, **cell.data)
     demos = load_demos(task, seed=cell.dataset_seed)
     model_cfg = ModelConfig.from_dict(cell.model)
     train_cfg = TrainConfig.from_dict(cell.train)

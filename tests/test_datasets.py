@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from envs import datasets
-from envs.datasets import cache_paths, load_demos
+from envs.datasets import cache_paths, entry_paths, load_demos
 from envs.tasks import get_task
 from envs.tasks.reacher import Reacher
 
@@ -31,7 +31,7 @@ def good_entry(tmp_path_factory):
     """A valid cache entry (reacher, 3 demos, seed 1), generated once for the damage tests."""
     d = tmp_path_factory.mktemp("good")
     demos = load_demos(get_task("reacher", n_demos=3), seed=1, cache_dir=d)
-    return demos, cache_paths("reacher", 1, d)
+    return demos, entry_paths(get_task("reacher", n_demos=3), 1, d)
 
 
 def _warnings(caplog):
@@ -40,7 +40,7 @@ def _warnings(caplog):
 
 def test_generated_once_then_read_from_the_env_var_cache(cache, small, monkeypatch):
     first = load_demos(small, seed=0)
-    npz, meta_path = cache_paths("reacher", 0, cache)
+    npz, meta_path = entry_paths(small, 0, cache)
     assert npz.exists() and meta_path.exists()
     meta = json.loads(meta_path.read_text())
     for key in ("task", "config_hash", "seed", "format_version", "count", "expert_success", "rejections",
@@ -100,7 +100,7 @@ def _missing_arrays(npz, meta):
 def test_damaged_cache_is_reported_once_and_rebuilt(cache, small, caplog, damage, good_entry):
     good, sources = good_entry
     cache.mkdir(parents=True)
-    npz, meta = cache_paths("reacher", 1, cache)
+    npz, meta = entry_paths(small, 1, cache)
     for src, dst in zip(sources, (npz, meta), strict=True):
         shutil.copy(src, dst)
     damage(npz, meta)
@@ -117,7 +117,11 @@ def test_damaged_cache_is_reported_once_and_rebuilt(cache, small, caplog, damage
     assert not _warnings(caplog)
 
 
-def test_cache_from_another_config_is_not_used(cache, small, caplog):
+def test_cache_from_another_config_is_not_used(cache, small, caplog, monkeypatch):
+    """An entry written under other defaults (same file name, other config hash) is rebuilt."""
+    import envs.datasets
+
+    monkeypatch.setattr(envs.datasets, "_variant", lambda task, chash: "")  # both count as the default config
     load_demos(small, seed=0)
     other = get_task("reacher", n_demos=4)
     with caplog.at_level(logging.WARNING, logger="envs.datasets"):
@@ -138,7 +142,7 @@ def test_failed_samples_are_resampled_and_counted(cache, small, monkeypatch):
     monkeypatch.setattr(Reacher, "final_distance", flaky)
     d = load_demos(small, seed=2)
     assert len(d) == 3 and d.meta["rejections"]["physics"] == 2 and d.meta["expert_success"] == 1.0
-    saved = json.loads(cache_paths("reacher", 2, cache)[1].read_text())
+    saved = json.loads(entry_paths(small, 2, cache)[1].read_text())
     assert saved["rejections"]["physics"] == 2
 
 
@@ -154,3 +158,15 @@ def test_default_cache_dir(monkeypatch, tmp_path):
     assert datasets.default_cache_dir() == tmp_path
     monkeypatch.delenv("ACRMDN_CACHE")
     assert datasets.default_cache_dir().name == "acrmdn"
+
+
+def test_non_default_task_config_has_its_own_entry(tmp_path):
+    """A task built with other options gets its own cache entry: the default one is not overwritten."""
+    from envs.tasks.reacher import Reacher
+
+    default = load_demos(Reacher(n_demos=3), seed=0, cache_dir=tmp_path)
+    more = load_demos(Reacher(n_demos=4), seed=0, cache_dir=tmp_path)
+    assert len(default) == 3 and len(more) == 4
+    entries = sorted(p.name for p in tmp_path.glob("reacher_seed0*.npz"))
+    assert len(entries) == 2, entries
+    assert len(load_demos(Reacher(n_demos=3), seed=0, cache_dir=tmp_path)) == 3  # still cached, not rebuilt

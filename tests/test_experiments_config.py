@@ -78,6 +78,21 @@ def test_bad_values_name_the_field_and_the_allowed_values(override, field, allow
     assert msg.startswith(field) and allowed in msg and "\n" not in msg
 
 
+def test_per_task_data_options_reach_the_cells_and_are_checked():
+    cfg = load_profile("smoke", ["per_task.reacher.data.n_demos=90"])
+    cells = {c.task: c for c in build_cells(cfg)}
+    assert cells["reacher"].data == {"n_demos": 90} and cfg.data_options("reacher") == {"n_demos": 90}
+    base = {c.key: c.config_hash for c in build_cells(load_profile("smoke"))}
+    assert base[cells["reacher"].key] != cells["reacher"].config_hash  # other data: another cell
+    assert all(base[c.key] == c.config_hash for c in cells.values() if c.task != "reacher")
+    with pytest.raises(ConfigError, match=r"^per_task.reacher.data.n_demo: unknown field; allowed: n_demos"):
+        load_profile("smoke", ["per_task.reacher.data.n_demo=90"])
+    with pytest.raises(ConfigError, match=r"^per_task.reacher.data.n_demos: expected an integer"):
+        load_profile("smoke", ["per_task.reacher.data.n_demos=many"])
+    with pytest.raises(ConfigError, match=r"^per_task.reacher.data: "):
+        load_profile("smoke", ["per_task.reacher.data.start_joint_range=-1.0"])
+
+
 def test_unknown_profile():
     with pytest.raises(ConfigError, match="profile: unknown profile 'huge'; allowed: .*smoke"):
         load_profile("huge")
