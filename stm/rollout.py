@@ -5,6 +5,9 @@ Generation is batched: B episodes (of possibly different horizons, padded to the
 longest) advance together, one LSTM step and one batched FK per time step, with
 the same state assembly as training (`stm.model.feedback_state`). Each episode's
 psi is read per step from `episode.psi`, so a goal switch is a change of rows.
+A task that chains skills (stacking: three pick-and-places) lists the steps at which
+a new skill starts in `episode.info["restart_steps"]`: there the LSTM state is reset
+and the input is built as an episode start (dq = 0, gripper open) from the current q.
 """
 
 from __future__ import annotations
@@ -51,6 +54,17 @@ def _padded_psi(episodes: list[Episode], horizon: int) -> torch.Tensor:
     return torch.as_tensor(np.stack(rows))
 
 
+def _restart_mask(episodes: list[Episode], horizon: int) -> torch.Tensor:
+    """(B, H+1) bool: True where an episode starts a new skill (info["restart_steps"])."""
+    mask = torch.zeros(len(episodes), horizon + 1, dtype=torch.bool)
+    for i, ep in enumerate(episodes):
+        for t in ep.info.get("restart_steps", ()):
+            if not 0 < int(t) <= ep.horizon:
+                raise ValueError(f"restart step {t} outside the episode (horizon {ep.horizon})")
+            mask[i, int(t)] = True
+    return mask
+
+
 @torch.no_grad()
 def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str = "component_mean", seed: int = 0,
              temperature: float = 1.0, phi_mode: str | None = None) -> Rollouts:
@@ -79,7 +93,15 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     qs[:, 0] = q
     hc = None
     grip_idx = task.layout.grip.start if task.layout.gripper else None
+    restarts = _restart_mask(episodes, H)
     for t in range(H):
+        if t > 0 and restarts[:, t].any():
+            rows = restarts[:, t]
+            s = s.clone()
+            s[rows] = initial_state(task, kin, q[rows], psi[rows, t])
+            hc = tuple(x.clone() for x in hc)
+            for x in hc:
+                x[:, rows] = 0.0
         raw, hc = model(model.normalize(s).unsqueeze(1), hc)
         pred = model.denormalize(model.predict(raw[:, 0], feedback, temperature=temperature, generator=gen))
         s, q = feedback_state(task, kin, pred, q, psi[:, t + 1], phi_mode)

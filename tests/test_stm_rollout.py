@@ -54,6 +54,20 @@ def test_goal_switch_changes_the_trajectory_only_after_the_switch(overfit):
     assert np.abs(ro.q[0, 8:] - ro.q[1, 8:]).max() > 1e-3
 
 
+def test_a_restart_step_continues_as_a_fresh_episode_from_the_current_q(overfit):
+    task, demos, model = overfit
+    ep = demo_episodes(demos, 1)[0]
+    k = 6
+    chained = Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon, info={"restart_steps": [k]})
+    plain, ro = generate(model, task, [ep, chained]).q
+    np.testing.assert_allclose(ro[: k + 1], plain[: k + 1], atol=1e-6)  # unchanged up to the restart
+    fresh = generate(model, task, [Episode(q0=ro[k], psi=ep.psi[k:], horizon=ep.horizon - k)]).q[0]
+    np.testing.assert_allclose(ro[k:], fresh, atol=1e-5)  # then exactly a new episode from q_k
+    assert np.abs(ro[k + 1:] - plain[k + 1:]).max() > 1e-4
+    with pytest.raises(ValueError, match="restart step 40 outside"):
+        generate(model, task, [Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon, info={"restart_steps": [40]})])
+
+
 def test_sampling_is_seeded_and_evaluate_runs_physics(overfit):
     task, demos, model = overfit
     eps = task.episodes(2, seed=0)

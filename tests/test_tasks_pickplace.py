@@ -142,6 +142,7 @@ def test_stacking_episode_layout():
     for k, t in enumerate([0, SUB_HORIZON, 2 * SUB_HORIZON]):
         assert np.isclose(ep.psi[t, 2], level_z(k)) and np.isclose(ep.psi[t + SUB_HORIZON - 1, 2], level_z(k))
     assert np.isclose(ep.psi[-1, 2], level_z(2))
+    assert ep.info["restart_steps"] == [SUB_HORIZON, 2 * SUB_HORIZON]  # one fresh pick-and-place per block
 
 
 def test_expert_stacking_succeeds_in_physics():
@@ -180,3 +181,18 @@ def test_changing_goal_expert_adapts_and_a_blind_one_fails():
     assert np.allclose(q_direct[0], q[k]) and g_direct[0] == 1.0 and g_direct[-1] == 0.0
     tip_place = tip_position_np(q_direct[np.flatnonzero(np.diff(g_direct) == -1)[0]])
     assert np.allclose(tip_place, np.asarray(ep.info["new_goal"]) + [0, 0, 0.03], atol=1e-3)
+
+
+def test_retreat_starts_are_poised_above_a_goal_in_the_grasp_frame():
+    from envs.tasks.pickplace import GRASP_HEIGHT, GRASP_ROT, RETREAT, tip_poses
+
+    task = get_task("pick-place", retreat_starts=1.0)
+    tip, rot = tip_poses(task.sample_starts(np.random.default_rng(3), 12))
+    levels = (tip[:, 2] - GRASP_HEIGHT - RETREAT - level_z(0)) / (level_z(1) - level_z(0))
+    assert np.allclose(levels, np.round(levels), atol=1e-3) and set(np.round(levels)) <= {0, 1, 2}
+    (x0, x1), (y0, y1) = GOAL_REGION
+    assert np.all((tip[:, 0] >= x0 - 1e-3) & (tip[:, 0] <= x1 + 1e-3) & (tip[:, 1] >= y0 - 1e-3) & (tip[:, 1] <= y1 + 1e-3))
+    assert np.allclose(rot, GRASP_ROT, atol=1e-2)
+    assert get_task("pick-place", retreat_starts=0.5).config() != get_task("pick-place").config()
+    with pytest.raises(ValueError, match="retreat_starts must be a fraction"):
+        get_task("pick-place", retreat_starts=1.5)

@@ -32,7 +32,8 @@ least 6 cm from its centre. final_distance = |block bottom - goal| (m).
 
 stack: three consecutive pick-place sub-episodes of SUB_HORIZON = 170 steps each
 (horizon 510) at one random xy with levels 0, 1, 2: psi rows k*170 .. (k+1)*170 - 1
-ask for level k (the last row too for level 2). A new block appears at the pick position
+ask for level k (the last row too for level 2); the model starts afresh at each sub-episode
+(info["restart_steps"]: LSTM state reset, an episode start from the current q). A new block appears at the pick position
 right after steps 170 and 340 (unless an unpicked block still occupies it); placed blocks
 stay. Success: after 1 s of settling, three upright blocks stand as a tower, each within
 2 cm (xy) of the tower axis and 1 cm (z) of its level, untouched by the gripper.
@@ -70,6 +71,7 @@ log = logging.getLogger(__name__)
 
 STEP_SECONDS = 0.1
 START_JOINT_RANGE = 0.1  # rad, half-width of the start range around NEUTRAL_Q (why 0.1: see envs/tasks/reacher.py)
+RETREAT_STARTS = 0.0  # fraction of starts poised where a previous place ended (see sample_starts)
 START_BOX = ((0.30, 0.80), (-0.15, 0.45), (TABLE_TOP_Z + 0.12, 0.35))  # tip at the start (m)
 GOAL_REGION = ((0.50, 0.75), (-0.05, 0.25))  # goal xy ranges (m)
 LEVELS = (0, 1, 2)
@@ -226,6 +228,27 @@ def run_pick_place(q: np.ndarray, grip: np.ndarray, goal: np.ndarray, level: int
     return {"success": float(ok and grip[-1] < 0.5), **metrics}
 
 
+def retreat_poses(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Configurations (n, 7) as after a place: the tip RETREAT above a random goal of a random
+    level, in the grasp frame (full-frame IK from NEUTRAL_Q); unconverged draws are redrawn."""
+    kin = default_kinematics(torch.float64)
+    out: list[np.ndarray] = []
+    while len(out) < n:
+        goals = _sample_goals(rng, n)
+        tip = goals + [0.0, 0.0, GRASP_HEIGHT + RETREAT]
+        res = solve_ik(torch.as_tensor(tip), torch.as_tensor(np.repeat(NEUTRAL_Q[None], n, 0)),
+                       target_rot=torch.as_tensor(np.repeat(GRASP_ROT[None], n, 0)), kin=kin, iters=300)
+        q = res.q.numpy()
+        out.extend(q[res.converged.numpy() & LIMITS.contains(q)])
+    return np.array(out[:n])
+
+
+def _sample_goals(rng: np.random.Generator, n: int, levels=LEVELS) -> np.ndarray:
+    xy = _sample_goal_xy(rng, n)
+    lv = rng.choice(np.asarray(levels), size=n)
+    return np.column_stack([xy, [level_z(v) for v in lv]])
+
+
 def _sample_goal_xy(rng: np.random.Generator, n: int) -> np.ndarray:
     lo, hi = _box_lo_hi(GOAL_REGION)
     return rng.uniform(lo, hi, size=(n, 2))
@@ -242,12 +265,16 @@ class PickPlace(Task):
         psi_names=("goal_x", "goal_y", "goal_z"),
     )
 
-    def __init__(self, n_demos: int = 150, min_steps: int = MIN_STEPS, max_steps: int = MAX_STEPS):
+    def __init__(self, n_demos: int = 150, min_steps: int = MIN_STEPS, max_steps: int = MAX_STEPS,
+                 retreat_starts: float = RETREAT_STARTS):
         if n_demos < 1:
             raise ValueError(f"n_demos must be >= 1, got {n_demos}")
         if not FIXED_STEPS + 10 <= min_steps <= max_steps:
             raise ValueError(f"need {FIXED_STEPS + 10} <= min_steps <= max_steps, got {min_steps}, {max_steps}")
+        if not 0.0 <= retreat_starts <= 1.0:
+            raise ValueError(f"retreat_starts must be a fraction in [0, 1], got {retreat_starts}")
         self.n_demos, self.min_steps, self.max_steps = n_demos, min_steps, max_steps
+        self.retreat_starts = float(retreat_starts)
 
     def config(self) -> dict[str, Any]:
         return {
@@ -257,6 +284,7 @@ class PickPlace(Task):
             "block_size": BLOCK_SIZE, "block_mass": BLOCK_MASS, "block_friction": BLOCK_FRICTION,
             "finger_friction": FINGER_FRICTION, "gripper_force": GRIPPER_FORCE, "grasp_height": GRASP_HEIGHT,
             "hover_z": HOVER_Z, "retreat": RETREAT, "segments": SEGMENTS, "settle_seconds": SETTLE_SECONDS,
+            **({"retreat_starts": self.retreat_starts} if self.retreat_starts else {}),
             "tolerances": {"xy": XY_TOL, "z": Z_TOL, "tilt": MAX_TILT, "away": AWAY},
             "expert": "min-jerk Cartesian segments, full-frame IK, replayed in physics",
         }
@@ -266,7 +294,17 @@ class PickPlace(Task):
 
     # sampling ----------------------------------------------------------------
     def sample_starts(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """n start configurations (n, 7) around NEUTRAL_Q whose tip lies in START_BOX."""
+        """n start configurations (n, 7): around NEUTRAL_Q with the tip in START_BOX, or, for a
+        `retreat_starts` fraction of them, poised where a place ends (tool down in the grasp frame,
+        RETREAT above a random goal of a random level) -- where each next block of a stack starts."""
+        if not self.retreat_starts:
+            return self._neutral_starts(rng, n)
+        retreat = rng.random(n) < self.retreat_starts
+        out = self._neutral_starts(rng, n)
+        out[retreat] = retreat_poses(rng, int(retreat.sum()))
+        return out
+
+    def _neutral_starts(self, rng: np.random.Generator, n: int) -> np.ndarray:
         lo, hi = _box_lo_hi(START_BOX)
         out: list[np.ndarray] = []
         while len(out) < n:
@@ -277,9 +315,7 @@ class PickPlace(Task):
 
     def sample_goals(self, rng: np.random.Generator, n: int, levels=LEVELS) -> np.ndarray:
         """Goals (n, 3): xy uniform in GOAL_REGION, z of a level drawn from `levels`."""
-        xy = _sample_goal_xy(rng, n)
-        lv = rng.choice(np.asarray(levels), size=n)
-        return np.column_stack([xy, [level_z(v) for v in lv]])
+        return _sample_goals(rng, n, levels)
 
     # expert ------------------------------------------------------------------
     def expert(self, q0: np.ndarray, goals: np.ndarray, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[Plan]]:
@@ -397,7 +433,9 @@ class Stack(PickPlace):
             psi = np.concatenate([psi, goals[-1:]])  # the last row keeps level 2
             out.append(Episode(q0=q0[i], psi=psi, horizon=H, info={
                 "tower_xy": xy[i].tolist(), "goals": goals.tolist(),
-                "switch_steps": [SUB_HORIZON, 2 * SUB_HORIZON], "sub_horizon": SUB_HORIZON}))
+                "switch_steps": [SUB_HORIZON, 2 * SUB_HORIZON], "sub_horizon": SUB_HORIZON,
+                # each block is its own pick-and-place: the model restarts from where the last one ended
+                "restart_steps": [SUB_HORIZON, 2 * SUB_HORIZON]}))
         return out
 
     def expert_rollout(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
