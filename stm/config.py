@@ -64,6 +64,7 @@ class TrainConfig(_Config):
     grad_clip: float = 1.0  # max global gradient norm (0 disables clipping)
     u: int = 5  # ground-truth steps per auto-conditioning period
     v: int = 5  # self-fed steps per period; 0 = teacher forcing
+    tf_warmup: int = 0  # first iterations teacher-forced before the (u, v) schedule starts (not in the paper)
     feedback: str = "component_mean"  # what an MDN feeds back: sample | component_mean | mixture_mean
     temperature: float = 1.0  # sampling temperature when feedback == "sample"
     detach_feedback: bool = False  # stop gradients through fed-back states (acLSTM reference: no)
@@ -84,6 +85,7 @@ class TrainConfig(_Config):
         _check(self.grad_clip >= 0, f"TrainConfig.grad_clip must be >= 0, got {self.grad_clip}")
         _check(self.u >= 1, f"TrainConfig.u must be >= 1, got {self.u}")
         _check(self.v >= 0, f"TrainConfig.v must be >= 0, got {self.v}")
+        _check(self.tf_warmup >= 0, f"TrainConfig.tf_warmup must be >= 0, got {self.tf_warmup}")
         _check(self.feedback in FEEDBACKS, f"TrainConfig.feedback must be one of {FEEDBACKS}, got {self.feedback!r}")
         _check(self.input_noise >= 0, f"TrainConfig.input_noise must be >= 0, got {self.input_noise}")
         _check(self.temperature > 0, f"TrainConfig.temperature must be > 0, got {self.temperature}")

@@ -14,6 +14,7 @@ Speed: consecutive ground-truth steps go through the LSTM in one fused call
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import sys
@@ -222,7 +223,8 @@ def _check_resumable(ckpt: dict, model_cfg: ModelConfig, train_cfg: TrainConfig,
         raise ValueError(f"checkpoint {path} was trained with another model config: {ckpt['model_config']}")
     if ckpt["layout"] != layout_to_dict(task.layout):
         raise ValueError(f"checkpoint {path} has state layout {ckpt['layout']}, task {task.name!r} has another")
-    old = {k: v for k, v in ckpt["train_config"].items() if k not in _RESUME_FREE}
+    saved = {**TrainConfig().to_dict(), **ckpt["train_config"]}  # fields added since read as their defaults
+    old = {k: v for k, v in saved.items() if k not in _RESUME_FREE}
     new = {k: v for k, v in train_cfg.to_dict().items() if k not in _RESUME_FREE}
     if old != new:
         diff = sorted(k for k in new if old.get(k) != new[k])
@@ -263,6 +265,7 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
         log.info("resuming from %s at iteration %d", ckpt_path, start_iter)
 
     validation = Validation.build(task, demos, train_cfg.val_episodes) if train_cfg.val_every else None
+    warmup_cfg = dataclasses.replace(train_cfg, v=0)  # teacher forcing for the first tf_warmup iterations
     t0 = time.perf_counter()
 
     def save(iteration: int) -> None:
@@ -284,7 +287,8 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
                 log.info("time budget of %.0f s reached at iteration %d", train_cfg.max_seconds, iteration)
                 break
             batch = data.batch(_sample_indices(N, train_cfg.batch_size, gen))
-            loss = batch_loss(model, batch, task, train_cfg, kin, gen)
+            schedule_cfg = warmup_cfg if iteration < train_cfg.tf_warmup else train_cfg
+            loss = batch_loss(model, batch, task, schedule_cfg, kin, gen)
             if not torch.isfinite(loss):
                 raise TrainingDiverged(iteration + 1, "loss")
             opt.zero_grad(set_to_none=True)

@@ -218,3 +218,19 @@ def test_validation_uses_fresh_episodes_when_the_task_has_a_kinematic_error():
     assert fresh.demos is None
     np.testing.assert_array_equal(fresh.episodes[0].q0, scored.episodes(3, VAL_SEED)[0].q0)
     assert not any(np.allclose(ep.q0, demos.q[i, 0]) for i, ep in enumerate(fresh.episodes))
+
+
+def test_tf_warmup_teacher_forces_the_first_iterations_then_auto_conditions(toy, tmp_path):
+    task, demos = toy
+    common = dict(batch_size=4, lr=3e-3, u=2, v=2, seed=5, log_every=0)
+    tf = train(TINY, TrainConfig(iters=6, **{**common, "v": 0}), task, demos).history["train/loss"]
+    ac = train(TINY, TrainConfig(iters=6, **common), task, demos).history["train/loss"]
+    cfg = TrainConfig(iters=6, tf_warmup=3, checkpoint_every=2, **common)
+    warm = train(TINY, cfg, task, demos).history["train/loss"]
+    assert warm[:3] == tf[:3] and warm[3:] != tf[3:] and warm[:3] != ac[:3]
+    # resuming inside the warm-up reproduces the run
+    path = tmp_path / "w.pt"
+    train(TINY, TrainConfig.from_dict({**cfg.to_dict(), "iters": 2}), task, demos, checkpoint_path=path)
+    assert train(TINY, cfg, task, demos, checkpoint_path=path).history["train/loss"] == warm
+    with pytest.raises(ValueError, match="tf_warmup must be >= 0"):
+        TrainConfig(tf_warmup=-1)

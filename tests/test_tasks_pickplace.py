@@ -191,7 +191,8 @@ def test_retreat_starts_are_poised_above_a_goal_in_the_grasp_frame():
     levels = (tip[:, 2] - GRASP_HEIGHT - RETREAT - level_z(0)) / (level_z(1) - level_z(0))
     assert np.allclose(levels, np.round(levels), atol=1e-3) and set(np.round(levels)) <= {0, 1, 2}
     (x0, x1), (y0, y1) = GOAL_REGION
-    assert np.all((tip[:, 0] >= x0 - 1e-3) & (tip[:, 0] <= x1 + 1e-3) & (tip[:, 1] >= y0 - 1e-3) & (tip[:, 1] <= y1 + 1e-3))
+    eps = 1e-3
+    assert np.all((tip[:, 0] >= x0 - eps) & (tip[:, 0] <= x1 + eps) & (tip[:, 1] >= y0 - eps) & (tip[:, 1] <= y1 + eps))
     assert np.allclose(rot, GRASP_ROT, atol=1e-2)
     assert get_task("pick-place", retreat_starts=0.5).config() != get_task("pick-place").config()
     with pytest.raises(ValueError, match="retreat_starts must be a fraction"):
