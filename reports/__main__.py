@@ -1,5 +1,9 @@
 """`python -m reports [--experiment NAME] [--study RUN_ID] [--out DIR]`: regenerate every table and
-figure from the MLflow store alone (default: the latest study of each kind)."""
+figure from the MLflow store alone (default: the latest study of each kind).
+
+`python -m reports --results [--ablation NAME_OR_RUN_ID] [--sweep NAME_OR_RUN_ID ...]`: regenerate
+reports/RESULTS.md (+ its small PNGs in reports/figures/) from reports/RESULTS.template.md and the store;
+`nox -s report -- --results` is the one command (see reports/results.py for the placeholders)."""
 
 from __future__ import annotations
 
@@ -28,13 +32,27 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                           "sqlite:///mlflow.db in the working directory)")
     p.add_argument("--no-log-artifacts", action="store_true", help="do not log the report to the parent run")
     p.add_argument("-v", "--verbose", action="store_true")
-    return p.parse_args(argv)
+    r = p.add_argument_group("RESULTS.md (--results)")
+    r.add_argument("--results", action="store_true", help="write RESULTS.md from the template instead of the "
+                                                          "per-study reports")
+    r.add_argument("--ablation", help="the ablation study (parent run id or study_name; default: the latest)")
+    r.add_argument("--sweep", action="extend", nargs="+", metavar="NAME_OR_RUN_ID",
+                   help="sweep studies (default: every sweep study, the latest per task)")
+    r.add_argument("--template", type=Path, default=Path("reports/RESULTS.template.md"))
+    r.add_argument("--results-out", type=Path, default=Path("reports/RESULTS.md"))
+    r.add_argument("--figures-dir", type=Path, default=Path("reports/figures"))
+    args = p.parse_args(argv)
+    if not args.results and (args.ablation or args.sweep):
+        p.error("--ablation and --sweep select the studies of --results; add --results")
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    if args.results:
+        return results_main(args)
     from reports.build import build_report
     from reports.html import root_index
     from reports.store import Store, StoreError
@@ -59,6 +77,21 @@ def main(argv: list[str] | None = None) -> int:
               f"[{report.seconds:.1f} s]")
     root = root_index(args.out, built)
     print(f"index: {root} [{time.perf_counter() - start:.1f} s total]")
+    return 0
+
+
+def results_main(args: argparse.Namespace) -> int:
+    from reports.results import ResultsError, write_results
+    from reports.store import Store, StoreError
+
+    start = time.perf_counter()
+    try:
+        out = write_results(Store(args.tracking_uri), args.template, args.results_out, args.figures_dir,
+                            args.ablation, args.sweep, args.tracking_uri)
+    except (StoreError, ResultsError) as exc:
+        print(f"reports: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"results: {out} (figures in {args.figures_dir}) [{time.perf_counter() - start:.1f} s]")
     return 0
 
 

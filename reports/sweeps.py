@@ -124,3 +124,21 @@ def sweep_intermediate(study: Study, folder: Path, metric: str = "val/metric") -
     ax.legend()
     return save(fig, folder, name, title)
 
+
+
+# Public views of the helpers above, for the RESULTS.md tables (reports.results).
+def sweep_frame(study: Study) -> pd.DataFrame:
+    """One row per trial, sorted by trial number: trial_no, trial_state (COMPLETE/PRUNED/FAIL), objective
+    (a pruned trial's last intermediate value), the params.trial.<name> columns."""
+    return _sweep_frame(study)
+
+
+def direction(study: Study) -> str:
+    """'minimize' or 'maximize', as the sweep's parent run logged it (default minimize)."""
+    return _direction(study)
+
+
+def objective_label(study: Study) -> str:
+    """What the objective measures ('objective: validation metric', ...), or the metric's name."""
+    found = _objective(study)
+    return _objective_label(study, found[0] if found else "objective")

@@ -1,0 +1,197 @@
+"""RESULTS.md generation (reports.results, `python -m reports --results`) from a real smoke store: a smoke
+ablation and a small smoke sweep run with the experiments CLI into a temporary MLflow store, then the
+template rendered into a temporary folder (never reports/RESULTS.md)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mlflow import MlflowClient
+from PIL import Image
+from test_experiments_e2e import _cli, _env  # the e2e tests' way of running the experiments CLI on a tmp store
+
+from reports import paper
+from reports.results import MAX_FIGURE_WIDTH, ResultsError, parse_template, regeneration_command
+
+REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
+
+TEMPLATE = """# Results (test)
+
+{{provenance}}
+
+{{command}}
+
+## Table I
+{{success_table}}
+
+{{circle_table}}
+
+{{train_time_table}}
+
+{{figure:success_bars}}
+
+{{figure:circles}}
+
+## Sweep
+{{sweep_table:reacher}}
+
+{{sweep_figure:reacher}}
+
+{{figure:training_curves}}
+
+## Discussion
+TODO
+"""
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    root = tmp_path_factory.mktemp("results_store")
+    for args in (["ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2"],
+                 ["sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2"]):
+        proc = _cli(args, root)
+        assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    return root
+
+
+def _results(store: Path, out: Path, *args: str, template: str = TEMPLATE) -> subprocess.CompletedProcess:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "template.md").write_text(template)
+    return subprocess.run([sys.executable, "-m", "reports", "--results", "--template", str(out / "template.md"),
+                           "--results-out", str(out / "docs" / "RESULTS.md"), "--figures-dir",
+                           str(out / "docs" / "figures"), *args], cwd=store, env=_env(store),
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def rendered(store, tmp_path_factory):
+    out = tmp_path_factory.mktemp("results_out")
+    proc = _results(store, out)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    return out, (out / "docs" / "RESULTS.md").read_text()
+
+
+def _parents(store: Path) -> dict[str, object]:
+    client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
+    out = {}
+    for kind in ("ablation", "sweep"):
+        exp = client.get_experiment_by_name(kind)
+        out[kind] = client.search_runs([exp.experiment_id], "tags.role = 'parent'")[0]
+    return out
+
+
+def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
+    out, text = rendered
+    assert "{{" not in text and "TODO" in text
+    parents = _parents(store)
+    abl, swp = parents["ablation"], parents["sweep"]
+    # provenance: both studies, their commit and the study's own wall time
+    assert abl.data.tags["study_name"] in text and swp.data.tags["study_name"] in text
+    assert f"`{abl.data.params['git_commit']}`" in text
+    assert f"{abl.data.metrics['time/study_seconds']:.1f} s" in text
+    # the success table: paper columns with Table I's values, ours with Wilson intervals from the runs
+    success = text.split("### Success rate (Table I, extended)")[1].split("###")[0]
+    assert "reacher (paper)" in success
+    for variant in ("lstm", "ac-lstm-mdn"):
+        row = next(line for line in success.splitlines() if line.startswith(f"| {paper.variant_label(variant)} |"))
+        assert f"| {100 * paper.TABLE_I[variant]['reacher']:.0f}% |" in row
+        assert re.search(r"\d+% \[\d+%–\d+%\] n=2", row), row
+    assert "### Circle drawing: radial error per radius" in text
+    assert "### Training time per variant and task" in text
+    # the sweep table: trial counts match the Optuna states logged on the trials, best = the parent's best
+    sweep = text.split("### Sweep on reacher: top 5 trials")[1].split("##")[0]
+    assert "trials: 2 (" in sweep
+    best = swp.data.metrics["best_value"]
+    assert f"objective {best:.4g}" in sweep
+    assert f"m = {swp.data.tags['best.m']}" in sweep
+    # the command pins the studies used
+    assert f"--ablation {abl.data.tags['study_name']}" in text and f"--sweep {swp.data.tags['study_name']}" in text
+
+
+def test_figures_are_small_pngs_behind_relative_links(rendered):
+    out, text = rendered
+    docs = out / "docs"
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    unavailable = re.findall(r"figure unavailable: (\w+)", text)
+    assert "success_bars" not in unavailable and "figures/success_bars.png" in links
+    assert "figures/reacher_sweep_history.png" in links
+    assert "circles" in unavailable  # the smoke profile does not train the circle task: a visible gap line
+    assert len(links) + len(unavailable) == 6  # success_bars, circles, 3 sweep figures, training_curves
+    for link in links:
+        assert not Path(link).is_absolute()
+        path = docs / link
+        assert path.exists(), link
+        with Image.open(path) as im:
+            assert im.format == "PNG" and im.width <= MAX_FIGURE_WIDTH
+        assert path.stat().st_size < 400_000
+    assert sorted(p.name for p in (docs / "figures").iterdir()) == sorted(Path(link).name for link in links)
+
+
+def _main(store: Path, out: Path, *args: str, template: str = TEMPLATE) -> int:
+    """`python -m reports --results ...` in this process (no interpreter start-up per call)."""
+    from reports.__main__ import main
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "template.md").write_text(template)
+    return main(["--results", "--tracking-uri", f"sqlite:///{store / 'mlflow.db'}", "--template",
+                 str(out / "template.md"), "--results-out", str(out / "docs" / "RESULTS.md"), "--figures-dir",
+                 str(out / "docs" / "figures"), *args])
+
+
+def test_twice_gives_the_same_bytes(store, rendered, tmp_path):
+    assert _main(store, tmp_path) == 0
+    text = (tmp_path / "docs" / "RESULTS.md").read_text()
+    figs = {p.name: p.read_bytes() for p in (tmp_path / "docs" / "figures").iterdir()}
+    assert _main(store, tmp_path) == 0
+    assert (tmp_path / "docs" / "RESULTS.md").read_text() == text
+    assert {p.name: p.read_bytes() for p in (tmp_path / "docs" / "figures").iterdir()} == figs
+    # and the same figures as the CLI run in another process (MLflow's column order differs between processes)
+    assert {p.name: p.read_bytes() for p in (rendered[0] / "docs" / "figures").iterdir()} == figs
+
+
+@pytest.mark.parametrize(("template", "message"), [
+    ("x {{success_tabel}} y", "unknown placeholder {{success_tabel}} (line 1)"),
+    ("a\n{{figure:no_such_figure}}", "unknown figure 'no_such_figure'"),
+    ("{{sweep_table:pick-place}}", "no sweep study of task 'pick-place'"),
+    ("{{success_table:reacher}}", "unknown placeholder {{success_table:reacher}}"),
+])
+def test_bad_template_is_a_one_line_error_and_writes_nothing(store, tmp_path, capsys, template, message):
+    assert _main(store, tmp_path, template=template) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "docs").exists()
+
+
+def test_bad_selection_is_a_one_line_error(store, tmp_path, capsys):
+    swp = _parents(store)["sweep"].data.tags["study_name"]
+    for args, message in ((["--ablation", "nope"], "unknown study 'nope'"),
+                          (["--ablation", swp], f"study {swp!r} is of kind 'sweep', not 'ablation'"),
+                          (["--sweep", "nope"], "unknown study 'nope'"),
+                          (["--template", str(tmp_path / "missing.md")], "cannot read the template")):
+        assert _main(store, tmp_path, *args) == 2, args
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, (args, err)
+        assert not (tmp_path / "docs").exists()
+
+
+def test_parse_template_and_command():
+    phs = parse_template("{{provenance}}\n\n{{ sweep_figure:pick-place:sweep_params }} {{figure:tip_paths}}")
+    assert [(p.kind, p.arg, p.line) for p in phs] == [("provenance", None, 1), ("sweep_figure",
+                                                      "pick-place:sweep_params", 3), ("figure", "tip_paths", 3)]
+    with pytest.raises(ResultsError, match="sweep_table takes a task only"):
+        parse_template("{{sweep_table:reacher:x}}")
+    cmd = regeneration_command(None, [], Path("reports/RESULTS.template.md"), Path("reports/RESULTS.md"),
+                               Path("reports/figures"), None)
+    assert cmd == "nox -s report -- --results"
+
+
+def test_repository_template_parses():
+    phs = parse_template((REPO / "reports" / "RESULTS.template.md").read_text())
+    kinds = {(p.kind, p.arg) for p in phs}
+    assert {("provenance", None), ("command", None), ("success_table", None), ("circle_table", None),
+            ("train_time_table", None), ("sweep_table", "reacher"), ("sweep_table", "pick-place")} <= kinds
