@@ -87,7 +87,7 @@ def results_main(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         out = write_results(Store(args.tracking_uri), args.template, args.results_out, args.figures_dir,
-                            args.ablation, args.sweep, args.tracking_uri)
+                            args.ablation, args.sweep)
     except (StoreError, ResultsError) as exc:
         print(f"reports: error: {exc}", file=sys.stderr)
         return 2

@@ -47,7 +47,7 @@ import pandas as pd
 
 from reports import figures, sweeps, tables, trajectories
 from reports.plotting import FigureResult, plt
-from reports.store import Store, StoreError, Study
+from reports.store import DEFAULT_TRACKING_URI, Store, StoreError, Study
 from reports.tables import Table, num
 
 log = logging.getLogger(__name__)
@@ -487,8 +487,7 @@ def regeneration_command(ablation: Study | None, sweeps_used: list[Study], templ
 
 
 def write_results(store: Store, template: Path, results_out: Path, figures_dir: Path,
-                  ablation: str | None = None, sweep_ids: list[str] | None = None,
-                  tracking_uri: str | None = None) -> Path:
+                  ablation: str | None = None, sweep_ids: list[str] | None = None) -> Path:
     """Render the template from the store into results_out (written only once everything rendered)."""
     try:
         text = template.read_text()
@@ -499,7 +498,9 @@ def write_results(store: Store, template: Path, results_out: Path, figures_dir: 
     results = Results(abl, swp, results_out, figures_dir, command="")
     results.check(placeholders)
     used_abl, used_swp = results.used(placeholders)
-    results.command = regeneration_command(used_abl, used_swp, template, results_out, figures_dir, tracking_uri)
+    # the store's URI goes into the command unless it is the default (given by --tracking-uri or the environment)
+    uri = store.uri if store.uri != DEFAULT_TRACKING_URI else None
+    results.command = regeneration_command(used_abl, used_swp, template, results_out, figures_dir, uri)
     out = results.render(text)
     try:
         results_out.parent.mkdir(parents=True, exist_ok=True)

@@ -109,7 +109,8 @@ def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
     best = swp.data.metrics["best_value"]
     assert f"objective {best:.4g}" in sweep
     assert f"m = {swp.data.tags['best.m']}" in sweep
-    # the command pins the studies used
+    # the command pins the studies used and the store (not the default one: it came from the environment)
+    assert f"--tracking-uri sqlite:///{store / 'mlflow.db'}" in text
     assert f"--ablation {abl.data.tags['study_name']}" in text and f"--sweep {swp.data.tags['study_name']}" in text
 
 
