@@ -102,33 +102,34 @@ class STM(nn.Module):
             return mdn.mixture_mean(logit_alpha, mu)
         raise ValueError(f"unknown feedback mode {mode!r}; known: sample, component_mean, mixture_mean")
 
-    def cell_weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Per layer, the LSTM weights rearranged for single steps (call once per sequence, inside
-        the autograd graph): W^T of [x, h] -> gates in the order (i, f, o, g), and the summed bias."""
-        H = self.config.hidden_size
-        order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
-        out = []
-        for k in range(self.config.num_layers):
-            w = torch.cat([getattr(self.lstm, f"weight_ih_l{k}"), getattr(self.lstm, f"weight_hh_l{k}")], dim=1)
-            b = getattr(self.lstm, f"bias_ih_l{k}") + getattr(self.lstm, f"bias_hh_l{k}")
-            out.append((w[order].t(), b[order]))
-        return out
+    def feedback_predictor(self, mode: str, dims: int):
+        """For the self-fed steps: a function top hidden state (B, H) -> the first `dims`
+        dimensions of the predicted next state in raw units, equal to
+        denormalize(predict(head(h), mode))[..., :dims]. Built once per unroll, inside the
+        autograd graph: only the head rows it reads are kept (the mixture logits and the
+        first `dims` mean coordinates per component; no sigmas) and the denormalisation is
+        folded into them. None where that does not apply (sampling needs the sigmas)."""
+        std, mean = self.state_std[:dims], self.state_mean[:dims]
+        w, b = self.head.weight, self.head.bias
+        if not self.is_mdn:
+            w_fb, b_fb = (w[:dims] * std[:, None]).t(), torch.addcmul(mean, b[:dims], std)
+            return lambda h: torch.addmm(b_fb, h, w_fb)
+        if mode not in ("component_mean", "mixture_mean"):
+            return None
+        m, D = self.config.mixtures, self.dim
+        w_mu = w[2 * m:].unflatten(0, (m, D))[:, :dims] * std[:, None]  # (m, dims, H)
+        b_mu = torch.addcmul(mean, b[2 * m:].unflatten(0, (m, D))[:, :dims], std)
+        w_fb = torch.cat([w[:m], w_mu.flatten(0, 1)]).t()  # (H, m + m * dims)
+        b_fb = torch.cat([b[:m], b_mu.flatten()])
 
-    def step(self, z: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor],
-             weights: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
-        """One LSTM time step (B, D) -> top hidden state (B, H), updating the per-layer h, c lists in place.
+        def predict(h: torch.Tensor) -> torch.Tensor:
+            out = torch.addmm(b_fb, h, w_fb)
+            logit_alpha, mu = out[:, :m], out[:, m:].view(-1, m, dims)
+            if mode == "component_mean":
+                return mdn.component_mean(logit_alpha, mu)
+            return mdn.mixture_mean(logit_alpha, mu)  # sum alpha_i = 1: the folded mean carries over
 
-        Same maths and weights as self.lstm, without its per-call set-up (a multi-layer nn.LSTM
-        call costs several times more than this for one step): one matmul per layer on [x, h],
-        one sigmoid over the (i, f, o) gates."""
-        H = self.config.hidden_size
-        x = z
-        for k, (w_t, b) in enumerate(weights):
-            gates = torch.addmm(b, torch.cat([x, h[k]], dim=1), w_t)
-            i, f, o = torch.sigmoid(gates[:, : 3 * H]).chunk(3, dim=1)
-            c[k] = torch.addcmul(f * c[k], i, torch.tanh(gates[:, 3 * H:]))
-            h[k] = x = o * torch.tanh(c[k])
-        return x
+        return predict
 
 
 def initial_state(task, kin, q0: torch.Tensor, psi0: torch.Tensor, grip0: torch.Tensor | None = None) -> torch.Tensor:

@@ -9,7 +9,12 @@ integrated from the last fed state's q. v = 0 is plain teacher forcing. The loss
 is on every valid step (padded steps masked out), as in the acLSTM reference.
 
 Speed: consecutive ground-truth steps go through the LSTM in one fused call
-(cuDNN-style multi-step kernel); only the self-fed steps are stepped one by one.
+(cuDNN-style multi-step kernel; chunks of <= 2 steps are stepped, cheaper than a
+call's set-up); the self-fed steps go one by one through stm.cell's stack step (one
+autograd node per step, hand-written backward, weight gradients deferred to one
+matmul per layer), fed from a prediction computed from only the head rows the
+feedback reads. tests/test_stm_speed_equivalence.py holds all of it to a plain
+step-by-step reference (loss and gradients).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from tqdm.auto import tqdm
 
 from envs.kinematics import default_kinematics
 from envs.tasks.base import Demos, Episode, Task
+from stm.cell import StackStepper
 from stm.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
@@ -99,6 +105,10 @@ def schedule(T: int, u: int, v: int) -> torch.Tensor:
     return torch.ones(T, dtype=torch.bool) if v == 0 else (t % (u + v)) < u
 
 
+_STEPPED_GT_CHUNK = 2  # ground-truth chunks up to this long (after the first) go through the stepper too:
+# a fused nn.LSTM call costs ~100 us of set-up per layer, more than stepping 2 steps (measured, stm.bench)
+
+
 def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generator: torch.Generator | None = None,
            *, return_inputs: bool = False):
     """Head outputs (B, T, out) for the inputs of `batch` under cfg's schedule.
@@ -106,42 +116,66 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
     With return_inputs, also the normalised inputs actually fed (B, T, D).
     """
     z_gt = model.normalize(batch.states[:, :-1])
-    if cfg.input_noise > 0 and model.training:
+    noisy = cfg.input_noise > 0 and model.training
+    if noisy:
         z_gt = z_gt + cfg.input_noise * torch.randn(z_gt.shape, generator=generator)
     T = z_gt.shape[1]
     if cfg.v == 0:
         raw, _ = model(z_gt)
         return (raw, z_gt) if return_inputs else raw
-    hs, inputs = [], []
-    weights = model.cell_weights()
-    hc = None
+    # Per self-fed step: predicted dq (and grip; and phi if "free") -> fed-back state (raw units)
+    # -> one step of the LSTM stack. Set up once here, inside the autograd graph: a predictor
+    # that computes only the head rows the feedback reads, with the denormalisation folded in
+    # (sampling falls back to the full head), and a stepper (stm.cell) that takes raw states.
+    layout = task.layout
+    dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
+    predict = model.feedback_predictor(cfg.feedback, dims)
+    if predict is None:
+        def predict(h: torch.Tensor) -> torch.Tensor:
+            return model.denormalize(model.predict(model.head(h), cfg.feedback, temperature=cfg.temperature,
+                                                   generator=generator))
+    stepper = StackStepper(model.lstm, model.state_mean, model.state_std)
+    s_gt = model.denormalize(z_gt) if noisy else batch.states[:, :-1]  # ground truth for the stepper
+    hs, fed = [], []  # top hidden states (pieces of (B, n, H)) and the self-fed (t, state) pairs
+    hl = cl = None  # per-layer (h, c) lists
     t = 0
     while t < T:
-        n = min(cfg.u, T - t)  # ground-truth chunk: one fused LSTM call
-        h, hc = model.lstm(z_gt[:, t: t + n], hc)
+        n = min(cfg.u, T - t)  # ground-truth chunk
+        if hl is not None and n <= _STEPPED_GT_CHUNK:
+            block = []
+            for j in range(n):
+                hl, cl = stepper(s_gt[:, t + j], hl, cl)
+                block.append(hl[-1])
+            h = torch.stack(block, dim=1)
+        else:  # one fused LSTM call
+            hc = None if hl is None else (torch.stack(hl), torch.stack(cl))
+            h, hc = model.lstm(z_gt[:, t: t + n], hc)
+            hl, cl = list(hc[0].unbind(0)), list(hc[1].unbind(0))
         hs.append(h)
-        inputs.append(z_gt[:, t: t + n])
         t += n
         k = min(cfg.v, T - t)
         if k == 0:
             continue
         q = batch.q[:, t - 1]
         last = h[:, -1]
-        hl, cl = list(hc[0].unbind(0)), list(hc[1].unbind(0))
-        for _ in range(k):  # self-fed steps: single LSTM cells, no per-call set-up
-            pred = model.denormalize(model.predict(model.head(last), cfg.feedback, temperature=cfg.temperature,
-                                                   generator=generator))
-            s, q = feedback_state(task, kin, pred, q, batch.psi[:, t], cfg.phi_mode)
-            z = model.normalize(s)
+        block = []
+        for _ in range(k):  # self-fed steps
+            s, q = feedback_state(task, kin, predict(last), q, batch.psi[:, t], cfg.phi_mode)
             if cfg.detach_feedback:
-                z, q = z.detach(), q.detach()
-            last = model.step(z, hl, cl, weights)
-            hs.append(last.unsqueeze(1))
-            inputs.append(z.unsqueeze(1))
+                s, q = s.detach(), q.detach()
+            hl, cl = stepper(s, hl, cl)
+            last = hl[-1]
+            block.append(last)
+            fed.append((t, s))
             t += 1
-        hc = (torch.stack(hl), torch.stack(cl))
+        hs.append(torch.stack(block, dim=1))
     raw = model.head(torch.cat(hs, dim=1))
-    return (raw, torch.cat(inputs, dim=1)) if return_inputs else raw
+    if not return_inputs:
+        return raw
+    inputs = z_gt.clone()
+    for t, s in fed:
+        inputs[:, t] = model.normalize(s)
+    return raw, inputs
 
 
 def batch_loss(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin,

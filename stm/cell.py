@@ -1,0 +1,175 @@
+"""Single steps of an nn.LSTM stack for the auto-conditioned unroll, with a hand-written backward.
+
+Why: a fused nn.LSTM call pays ~100 us of set-up per layer, too much for one or two
+steps, and a cell written in autograd ops records ~30 graph nodes per step. Here one
+step of the whole stack is ONE autograd node (`_StackStep`): the forward runs the gate
+maths without recording, the backward is the textbook LSTM backward. The weight
+gradient is not computed per step: each step leaves its ([x, h], d gates) rows in a
+`_Deferred` store and the node that handed out the weights (`_Weights`, upstream of
+every step) turns them into one matmul per layer when autograd reaches it, after all
+the steps (autograd runs a node only once every consumer of its outputs is done).
+
+Same maths and weights as nn.LSTM: gates i, f, g, o (rearranged to i, f, o, g) with
+c' = f c + i g and h' = o tanh(c'); biases b_ih + b_hh. Checked against nn.LSTM and a
+plain reference unroll in tests/test_stm_speed_equivalence.py.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class _Deferred:
+    """Per unroll: the ([x, h], d gates) rows each layer's steps left for the weight gradient."""
+
+    def __init__(self, layers: int):
+        self.xh: list[list[torch.Tensor]] = [[] for _ in range(layers)]
+        self.dgates: list[list[torch.Tensor]] = [[] for _ in range(layers)]
+
+
+class _Weights(torch.autograd.Function):
+    """Identity on (w_t, b) per layer; backward = the deferred weight gradients of all steps."""
+
+    @staticmethod
+    def forward(ctx, store: _Deferred, *wb: torch.Tensor):
+        ctx.store = store
+        ctx.set_materialize_grads(False)
+        return tuple(t.view_as(t) for t in wb)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        store, out = ctx.store, []
+        for k in range(len(grads) // 2):
+            xh, dg = store.xh[k], store.dgates[k]
+            store.xh[k], store.dgates[k] = [], []  # a second backward (retain_graph) starts afresh
+            gw, gb = grads[2 * k], grads[2 * k + 1]
+            if xh:
+                xh, dg = torch.cat(xh), torch.cat(dg)
+                dw, db = xh.t() @ dg, dg.sum(0)
+                gw = dw if gw is None else gw + dw
+                gb = db if gb is None else gb + db
+            out += [gw, gb]
+        return (None, *out)
+
+
+def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tensor], ws: list[torch.Tensor],
+                   bs: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor], list[list[torch.Tensor]]]:
+    """The forward of one step, bottom layer first; also what the backward needs per layer."""
+    H = hs[0].shape[1]
+    h_out: list[torch.Tensor] = []
+    c_out: list[torch.Tensor] = []
+    saved: list[list[torch.Tensor]] = []
+    inp = x
+    for k in range(len(hs)):
+        xh = torch.cat([inp, hs[k]], 1)
+        gates = torch.addmm(bs[k], xh, ws[k])
+        sig = torch.sigmoid(gates[:, : 3 * H])  # i, f, o
+        g = torch.tanh(gates[:, 3 * H:])
+        c_new = torch.addcmul(sig[:, H: 2 * H] * cs[k], sig[:, :H], g)
+        tc = torch.tanh(c_new)
+        inp = sig[:, 2 * H:] * tc
+        h_out.append(inp)
+        c_out.append(c_new)
+        saved.append([xh, sig, g, tc])
+    return h_out, c_out, saved
+
+
+def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None], cs: list[torch.Tensor],
+                    ws: list[torch.Tensor], saved: list[list[torch.Tensor]], need_x: bool
+                    ) -> tuple[torch.Tensor | None, list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+    """The LSTM backward of one step, top layer first. Returns d x, d h_k, d c_k and, per layer,
+    d gates (for the deferred weight gradient)."""
+    L = len(cs)
+    H = cs[0].shape[1]
+    grad_h: list[torch.Tensor] = []
+    grad_c: list[torch.Tensor] = []
+    dgs: list[torch.Tensor] = []
+    below: torch.Tensor | None = None  # gradient reaching layer k's output from layer k + 1's input
+    for j in range(L):
+        k = L - 1 - j
+        xh, sig, g, tc = saved[k][0], saved[k][1], saved[k][2], saved[k][3]
+        i, f, o = sig[:, :H], sig[:, H: 2 * H], sig[:, 2 * H:]
+        ghk = gh[k]
+        if ghk is None:
+            dh = below if below is not None else torch.zeros_like(tc)
+        else:
+            dh = ghk if below is None else ghk + below
+        dc = torch.addcmul(o, o * tc, tc, value=-1.0) * dh  # o (1 - tanh(c)^2) dh
+        gck = gc[k]
+        if gck is not None:
+            dc = dc + gck
+        dgates = torch.cat([dc * g, dc * cs[k], dh * tc, dc * i], 1)
+        dgates[:, : 3 * H] *= torch.addcmul(sig, sig, sig, value=-1.0)  # sigmoid' = s (1 - s)
+        dgates[:, 3 * H:] *= torch.addcmul(torch.ones_like(g), g, g, value=-1.0)  # tanh' = 1 - t^2
+        grad_c.append(dc * f)
+        d_in = xh.shape[1] - H
+        if k > 0 or need_x:
+            dxh = torch.mm(dgates, ws[k].t())
+            below = dxh[:, :d_in]
+            grad_h.append(dxh[:, d_in:])
+        else:  # a ground-truth input: only the recurrent part
+            below = None
+            grad_h.append(torch.mm(dgates, ws[k][d_in:].t()))
+        dgs.append(dgates)
+    grad_h.reverse()
+    grad_c.reverse()
+    dgs.reverse()
+    return below, grad_h, grad_c, dgs
+
+
+class _StackStep(torch.autograd.Function):
+    """One time step of the L-layer stack: x (B, D), per layer h_k, c_k (B, H) -> h_k', c_k'.
+
+    Per-layer tensors in and out (no stack/select per step); w_t has the g-gate columns
+    last, so one sigmoid covers i, f, o."""
+
+    @staticmethod
+    def forward(ctx, x, store: _Deferred, *args):
+        L = len(args) // 4
+        hs, cs, wb = list(args[:L]), list(args[L: 2 * L]), args[2 * L:]
+        ws, bs = list(wb[0::2]), list(wb[1::2])
+        h_out, c_out, saved = _stack_forward(x, hs, cs, ws, bs)
+        ctx.saved, ctx.store, ctx.c, ctx.w = saved, store, cs, ws
+        return (*h_out, *c_out)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        L = len(ctx.c)
+        dx, grad_h, grad_c, dgs = _stack_backward(list(grads[:L]), list(grads[L:]), ctx.c, ctx.w, ctx.saved,
+                                                  ctx.needs_input_grad[0])
+        store = ctx.store
+        for k in range(L):
+            store.xh[k].append(ctx.saved[k][0])
+            store.dgates[k].append(dgs[k])
+        return (dx, None, *grad_h, *grad_c) + (None,) * (2 * L)
+
+
+class StackStepper:
+    """Steps an nn.LSTM's stack one time step at a time (create one per unroll, inside the
+    autograd graph: it rearranges the weights once)."""
+
+    def __init__(self, lstm: nn.LSTM, in_mean: torch.Tensor | None = None, in_std: torch.Tensor | None = None):
+        """With in_mean, in_std the steps take raw inputs x and compute what the LSTM gives
+        for (x - in_mean) / in_std: the normalisation is folded into the first layer's
+        input weights (W (x - m) / s = (W / s) x - (W / s) m), two ops fewer per step."""
+        H, L = lstm.hidden_size, lstm.num_layers
+        self.layers = L
+        self.store = _Deferred(L)
+        # nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g): one sigmoid over the first 3H columns
+        order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
+        wb = []
+        for k in range(L):  # W^T of [x, h] -> gates, and the summed bias
+            w_ih, b = getattr(lstm, f"weight_ih_l{k}"), getattr(lstm, f"bias_ih_l{k}") + getattr(lstm, f"bias_hh_l{k}")
+            if k == 0 and in_std is not None:
+                w_ih = w_ih / in_std
+                b = b - w_ih @ in_mean
+            w = torch.cat([w_ih, getattr(lstm, f"weight_hh_l{k}")], dim=1)
+            wb += [w[order].t(), b[order]]
+        self.wb = _Weights.apply(self.store, *wb)
+
+    def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
+                 ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """x (B, D), per-layer h, c (B, H) -> the next per-layer h, c (top layer last)."""
+        out = _StackStep.apply(x, self.store, *h, *c, *self.wb)
+        return list(out[: self.layers]), list(out[self.layers:])
