@@ -155,6 +155,23 @@ def test_twice_gives_the_same_bytes(store, rendered, tmp_path):
     assert {p.name: p.read_bytes() for p in (rendered[0] / "docs" / "figures").iterdir()} == figs
 
 
+def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypatch):
+    from reports import results
+
+    template = "{{figure:success_bars}}\n\n{{figure:train_time}}\n"
+    assert _main(store, tmp_path, template=template) == 0
+    assert (tmp_path / "docs" / "figures" / "success_bars.png").exists()
+
+    def broken(*_):
+        raise RuntimeError("data the builder did not foresee")
+    monkeypatch.setitem(results.ABLATION_FIGURES, "success_bars", broken)
+    assert _main(store, tmp_path, template=template) == 0
+    text = (tmp_path / "docs" / "RESULTS.md").read_text()
+    assert "figure unavailable: success_bars" in text and "RuntimeError: data the builder did not foresee" in text
+    assert "](figures/train_time.png)" in text  # the rest of the file is still there
+    assert not (tmp_path / "docs" / "figures" / "success_bars.png").exists()  # no stale figure beside the gap
+
+
 @pytest.mark.parametrize(("template", "message"), [
     ("x {{success_tabel}} y", "unknown placeholder {{success_tabel}} (line 1)"),
     ("a\n{{figure:no_such_figure}}", "unknown figure 'no_such_figure'"),
