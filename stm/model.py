@@ -163,10 +163,29 @@ def feedback_state(task, kin, pred: torch.Tensor, q_prev: torch.Tensor, psi: tor
     return s.to(pred.dtype), q
 
 
-def normalization_stats(states: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-dimension mean and std over the valid rows of (N, T+1, D) states."""
+# Floors of the normalisation std per part of the state, in its units (below every spread seen in the
+# reacher and pick-place demos, so those are unchanged). Why: a dimension constant in the demos (the
+# circle's tip height) would otherwise normalise a 1 mm drift in closed loop to ~1000 std and derail
+# the model.
+STD_FLOORS = {"dq": 5e-4, "grip": 0.05, "phi": 0.01, "psi": 0.01}  # rad, command, m, m
+
+
+def std_floor(layout: StateLayout) -> torch.Tensor:
+    """(D,) normalisation std floors of a state layout (STD_FLOORS per part)."""
+    floor = torch.full((layout.dim,), STD_FLOOR)
+    for part, value in STD_FLOORS.items():
+        floor[getattr(layout, part)] = value  # grip: an empty slice without a gripper
+    return floor
+
+
+def normalization_stats(states: torch.Tensor, mask: torch.Tensor,
+                        layout: StateLayout | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-dimension mean and std over the valid rows of (N, T+1, D) states; with a layout, each
+    std is at least its part's floor (std_floor), else at least STD_FLOOR."""
     rows = states[mask]
     mean = rows.mean(0)
     std = rows.std(0, unbiased=False).clamp_min(STD_FLOOR)
+    if layout is not None:
+        std = torch.maximum(std, std_floor(layout).to(std.dtype))
     return mean, std
 

@@ -278,7 +278,8 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
     N = len(demos)
     valid = torch.arange(data.states.shape[1])[None, :] <= data.lengths[:, None]
     torch.manual_seed(train_cfg.seed)
-    model = STM(model_cfg, task.layout, *normalization_stats(data.states, valid), phi_mode=train_cfg.phi_mode)
+    model = STM(model_cfg, task.layout, *normalization_stats(data.states, valid, task.layout),
+                phi_mode=train_cfg.phi_mode)
     opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
     gen = torch.Generator().manual_seed(train_cfg.seed)
     history: dict[str, list[float]] = {"train/loss": [], "train/grad_norm": [], "val/iteration": [],

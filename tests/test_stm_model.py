@@ -60,6 +60,26 @@ def test_initial_state_matches_demo_states():
     torch.testing.assert_close(s0, states[:, 0].float(), atol=1e-5, rtol=0)
 
 
+def test_a_constant_state_dimension_gets_its_parts_std_floor():
+    """The circle's tip height is constant in its demos: its std must not be ~0 (a 1 mm drift
+    would read as ~1000 std in closed loop)."""
+    from stm.model import STD_FLOORS
+
+    task = ToyReach(gripper=True)
+    layout = task.layout
+    states = torch.randn(4, 9, layout.dim) * 0.2
+    states[..., layout.phi.start + 2] = 0.0  # constant phi_z
+    mask = torch.ones(4, 9, dtype=torch.bool)
+    mean, std = normalization_stats(states, mask, layout)
+    assert std[layout.phi.start + 2] == STD_FLOORS["phi"]
+    plain_mean, plain_std = normalization_stats(states, mask)
+    assert plain_std[layout.phi.start + 2] < 1e-5  # without a layout: the old tiny floor
+    others = torch.ones(layout.dim, dtype=torch.bool)
+    others[layout.phi.start + 2] = False
+    torch.testing.assert_close(std[others], plain_std[others])  # spreads above the floors are untouched
+    torch.testing.assert_close(mean, plain_mean)
+
+
 def test_loss_ignores_padded_steps_and_normalisation_round_trips():
     task = ToyReach()
     D = task.layout.dim

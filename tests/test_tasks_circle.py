@@ -96,3 +96,13 @@ def test_physics_evaluation_passes_the_expert_and_fails_wrong_circles(task, demo
     assert m["success"] == 0.0 and m["max_radial_error_pct"] > 30
     standing = np.repeat(ep.q0[None], 101, axis=0)
     assert task.evaluate(standing, None, ep)["success"] == 0.0
+
+
+def test_constant_speed_profile_is_its_own_dataset_and_unknown_profiles_fail():
+    const = circle_path(0.1, profile="constant")
+    steps = np.linalg.norm(np.diff(const, axis=0), axis=1)
+    assert np.allclose(steps, steps[0]) and np.allclose(const[0], const[-1])
+    assert np.allclose(circle_path(0.1)[0], const[0])  # same start: same episodes
+    assert get_task("circle", profile="constant").config() != get_task("circle").config()
+    with pytest.raises(ValueError, match="profile must be one of min-jerk, constant"):
+        get_task("circle", profile="sine")

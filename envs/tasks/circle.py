@@ -39,9 +39,16 @@ MAX_ERROR_PCT = 10.0
 MIN_TURNS = 0.95
 
 
-def circle_path(radius: float, steps: int = STEPS, centre=CENTRE) -> np.ndarray:
-    """The demonstrated tip path (steps+1, 3): one counter-clockwise turn from angle 0."""
-    theta = 2 * np.pi * min_jerk(steps)
+PROFILES = ("min-jerk", "constant")  # how the angle advances along the turn
+
+
+def circle_path(radius: float, steps: int = STEPS, centre=CENTRE, profile: str = "min-jerk") -> np.ndarray:
+    """The demonstrated tip path (steps+1, 3): one counter-clockwise turn from angle 0, the angle
+    following a minimum-jerk profile (at rest at both ends) or a constant angular speed."""
+    if profile not in PROFILES:
+        raise ValueError(f"unknown circle profile {profile!r}; known: {', '.join(PROFILES)}")
+    s = min_jerk(steps) if profile == "min-jerk" else np.linspace(0.0, 1.0, steps + 1)
+    theta = 2 * np.pi * s
     c = np.asarray(centre, dtype=float)
     return c + radius * np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=-1)
 
@@ -72,15 +79,18 @@ class Circle(Task):
     step_seconds = STEP_SECONDS
     layout = StateLayout(phi_dim=3, psi_dim=1, phi_names=("tip_x", "tip_y", "tip_z"), psi_names=("radius",))
 
-    def __init__(self, radii: tuple[float, ...] = DEMO_RADII, steps: int = STEPS):
+    def __init__(self, radii: tuple[float, ...] = DEMO_RADII, steps: int = STEPS, profile: str = "min-jerk"):
         if not radii or min(radii) <= 0:
             raise ValueError(f"radii must be positive, got {radii}")
+        if profile not in PROFILES:
+            raise ValueError(f"profile must be one of {', '.join(PROFILES)}, got {profile!r}")
         self.radii = tuple(float(r) for r in radii)
         self.steps = int(steps)
+        self.profile = profile
 
     def config(self) -> dict[str, Any]:
         return {"task": self.name, "radii": self.radii, "steps": self.steps, "centre": CENTRE,
-                "step_seconds": self.step_seconds, "profile": "min-jerk angle, tool down, start at angle 0"}
+                "step_seconds": self.step_seconds, "profile": f"{self.profile} angle, tool down, start at angle 0"}
 
     def phi(self, tip_pos, psi):
         return tip_pos
@@ -88,7 +98,7 @@ class Circle(Task):
     def expert(self, radii) -> tuple[np.ndarray, np.ndarray]:
         """Expert joint paths (B, steps+1, 7) for radii (B,), and whether each is valid
         (IK converged, within joint limits, joint speeds under the URDF limits)."""
-        paths = np.stack([circle_path(r, self.steps) for r in radii])
+        paths = np.stack([circle_path(r, self.steps, profile=self.profile) for r in radii])
         q_start = np.repeat(NEUTRAL_Q[None], len(radii), axis=0)
         # first solve the start point from the neutral pose, then the circle from there
         q0, ok0, _ = solve_tool_down_path(paths[:, :1], q_start)
