@@ -190,8 +190,23 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+def machine_params() -> dict[str, str]:
+    """Where a run ran: host, CPU model, cores, Python (timings mean little without them)."""
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {"machine.host": platform.node(), "machine.cpu": cpu, "machine.cores": str(os.cpu_count()),
+            "machine.python": platform.python_version()}
+
+
 def provenance_params() -> dict[str, str]:
-    return {"git_commit": git_commit(), **{f"version.{k}": v for k, v in package_versions().items()}}
+    return {"git_commit": git_commit(), **{f"version.{k}": v for k, v in package_versions().items()},
+            **machine_params()}
 
 
 def log_params(client: Client, run_id: str, params: Mapping[str, Any]) -> None:
