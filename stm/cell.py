@@ -63,12 +63,11 @@ def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tenso
     inp = x
     for k in range(len(hs)):
         xh = torch.cat([inp, hs[k]], 1)
-        gates = torch.addmm(bs[k], xh, ws[k])
-        sig = torch.sigmoid(gates[:, : 3 * H])  # i, f, o
-        g = torch.tanh(gates[:, 3 * H:])
+        sig = torch.sigmoid(torch.addmm(bs[k], xh, ws[k]))  # i, f, o and sigmoid(2 g_pre)
+        g = sig[:, 3 * H:] * 2.0 - 1.0  # tanh(x) = 2 sigmoid(2x) - 1: one sigmoid for all gates
         c_new = torch.addcmul(sig[:, H: 2 * H] * cs[k], sig[:, :H], g)
         tc = torch.tanh(c_new)
-        inp = sig[:, 2 * H:] * tc
+        inp = sig[:, 2 * H: 3 * H] * tc
         h_out.append(inp)
         c_out.append(c_new)
         saved.append([xh, sig, g, tc])
@@ -89,7 +88,7 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
     for j in range(L):
         k = L - 1 - j
         xh, sig, g, tc = saved[k][0], saved[k][1], saved[k][2], saved[k][3]
-        i, f, o = sig[:, :H], sig[:, H: 2 * H], sig[:, 2 * H:]
+        i, f, o = sig[:, :H], sig[:, H: 2 * H], sig[:, 2 * H: 3 * H]
         ghk = gh[k]
         if ghk is None:
             dh = below if below is not None else torch.zeros_like(tc)
@@ -99,9 +98,9 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
         gck = gc[k]
         if gck is not None:
             dc = dc + gck
-        dgates = torch.cat([dc * g, dc * cs[k], dh * tc, dc * i], 1)
-        dgates[:, : 3 * H] *= torch.addcmul(sig, sig, sig, value=-1.0)  # sigmoid' = s (1 - s)
-        dgates[:, 3 * H:] *= torch.addcmul(torch.ones_like(g), g, g, value=-1.0)  # tanh' = 1 - t^2
+        # d pre-activations: sigmoid' = s (1 - s) for all four; g = 2 s - 1 adds the factor 2
+        dgates = torch.cat([dc * g, dc * cs[k], dh * tc, dc * i * 2.0], 1)
+        dgates *= torch.addcmul(sig, sig, sig, value=-1.0)
         grad_c.append(dc * f)
         d_in = xh.shape[1] - H
         if k > 0 or need_x:
@@ -121,8 +120,8 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
 class _StackStep(torch.autograd.Function):
     """One time step of the L-layer stack: x (B, D), per layer h_k, c_k (B, H) -> h_k', c_k'.
 
-    Per-layer tensors in and out (no stack/select per step); w_t has the g-gate columns
-    last, so one sigmoid covers i, f, o."""
+    Per-layer tensors in and out (no stack/select per step); w_t has the gate columns in
+    the order i, f, o, g, those of g doubled, so that one sigmoid gives all four gates."""
 
     @staticmethod
     def forward(ctx, x, store: _Deferred, *args):
@@ -156,8 +155,10 @@ class StackStepper:
         H, L = lstm.hidden_size, lstm.num_layers
         self.layers = L
         self.store = _Deferred(L)
-        # nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g): one sigmoid over the first 3H columns
+        # nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), the g rows doubled: tanh(x) = 2 sigmoid(2x) - 1,
+        # so one sigmoid covers all four gates (tanh costs several times a sigmoid per element here)
         order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
+        scale = torch.cat([torch.ones(3 * H), torch.full((H,), 2.0)])
         wb = []
         for k in range(L):  # W^T of [x, h] -> gates, and the summed bias
             w_ih, b = getattr(lstm, f"weight_ih_l{k}"), getattr(lstm, f"bias_ih_l{k}") + getattr(lstm, f"bias_hh_l{k}")
@@ -165,7 +166,7 @@ class StackStepper:
                 w_ih = w_ih / in_std
                 b = b - w_ih @ in_mean
             w = torch.cat([w_ih, getattr(lstm, f"weight_hh_l{k}")], dim=1)
-            wb += [w[order].t(), b[order]]
+            wb += [(w[order] * scale[:, None]).t(), b[order] * scale]
         self.wb = _Weights.apply(self.store, *wb)
 
     def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
