@@ -55,7 +55,11 @@ class _Weights(torch.autograd.Function):
 
 def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tensor], ws: list[torch.Tensor],
                    bs: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor], list[list[torch.Tensor]]]:
-    """The forward of one step, bottom layer first; also what the backward needs per layer."""
+    """The forward of one step, bottom layer first; also, per layer, the local derivatives the
+    backward needs, so that it is a few ops per layer:
+      d pre-activations = [dc, dc, dh, dc] * [g, c, tanh(c'), 2 i] * s (1 - s)  (`gd`: all but the first)
+      dc = dc' + dh * o (1 - tanh(c')^2)                                          (`o_dt`: the last factor)
+    with s the gate sigmoids (the g gate's doubled: g = 2 s_g - 1)."""
     H = hs[0].shape[1]
     h_out: list[torch.Tensor] = []
     c_out: list[torch.Tensor] = []
@@ -64,44 +68,41 @@ def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tenso
     for k in range(len(hs)):
         xh = torch.cat([inp, hs[k]], 1)
         sig = torch.sigmoid(torch.addmm(bs[k], xh, ws[k]))  # i, f, o and sigmoid(2 g_pre)
+        i, f, o = sig[:, :H], sig[:, H: 2 * H], sig[:, 2 * H: 3 * H]
         g = sig[:, 3 * H:] * 2.0 - 1.0  # tanh(x) = 2 sigmoid(2x) - 1: one sigmoid for all gates
-        c_new = torch.addcmul(sig[:, H: 2 * H] * cs[k], sig[:, :H], g)
+        c_new = torch.addcmul(f * cs[k], i, g)
         tc = torch.tanh(c_new)
-        inp = sig[:, 2 * H: 3 * H] * tc
+        inp = o * tc
+        gd = torch.cat([g, cs[k], tc, i * 2.0], 1) * torch.addcmul(sig, sig, sig, value=-1.0)
+        o_dt = torch.addcmul(o, inp, tc, value=-1.0)
         h_out.append(inp)
         c_out.append(c_new)
-        saved.append([xh, sig, g, tc])
+        saved.append([xh, gd, o_dt, f])
     return h_out, c_out, saved
 
 
-def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None], cs: list[torch.Tensor],
-                    ws: list[torch.Tensor], saved: list[list[torch.Tensor]], need_x: bool
+def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None], ws: list[torch.Tensor],
+                    saved: list[list[torch.Tensor]], need_x: bool
                     ) -> tuple[torch.Tensor | None, list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
     """The LSTM backward of one step, top layer first. Returns d x, d h_k, d c_k and, per layer,
     d gates (for the deferred weight gradient)."""
-    L = len(cs)
-    H = cs[0].shape[1]
+    L = len(saved)
     grad_h: list[torch.Tensor] = []
     grad_c: list[torch.Tensor] = []
     dgs: list[torch.Tensor] = []
     below: torch.Tensor | None = None  # gradient reaching layer k's output from layer k + 1's input
     for j in range(L):
         k = L - 1 - j
-        xh, sig, g, tc = saved[k][0], saved[k][1], saved[k][2], saved[k][3]
-        i, f, o = sig[:, :H], sig[:, H: 2 * H], sig[:, 2 * H: 3 * H]
-        ghk = gh[k]
+        xh, gd, o_dt, f = saved[k]
+        ghk, gck = gh[k], gc[k]
         if ghk is None:
-            dh = below if below is not None else torch.zeros_like(tc)
+            dh = below if below is not None else torch.zeros_like(f)
         else:
             dh = ghk if below is None else ghk + below
-        dc = torch.addcmul(o, o * tc, tc, value=-1.0) * dh  # o (1 - tanh(c)^2) dh
-        gck = gc[k]
-        if gck is not None:
-            dc = dc + gck
-        # d pre-activations: sigmoid' = s (1 - s) for all four; g = 2 s - 1 adds the factor 2
-        dgates = torch.cat([dc * g, dc * cs[k], dh * tc, dc * i * 2.0], 1)
-        dgates *= torch.addcmul(sig, sig, sig, value=-1.0)
+        dc = o_dt * dh if gck is None else torch.addcmul(gck, o_dt, dh)
+        dgates = torch.cat([dc, dc, dh, dc], 1).mul_(gd)
         grad_c.append(dc * f)
+        H = f.shape[1]
         d_in = xh.shape[1] - H
         if k > 0 or need_x:
             dxh = torch.mm(dgates, ws[k].t())
@@ -129,13 +130,13 @@ class _StackStep(torch.autograd.Function):
         hs, cs, wb = list(args[:L]), list(args[L: 2 * L]), args[2 * L:]
         ws, bs = list(wb[0::2]), list(wb[1::2])
         h_out, c_out, saved = _stack_forward(x, hs, cs, ws, bs)
-        ctx.saved, ctx.store, ctx.c, ctx.w = saved, store, cs, ws
+        ctx.saved, ctx.store, ctx.w = saved, store, ws
         return (*h_out, *c_out)
 
     @staticmethod
     def backward(ctx, *grads):
-        L = len(ctx.c)
-        dx, grad_h, grad_c, dgs = _stack_backward(list(grads[:L]), list(grads[L:]), ctx.c, ctx.w, ctx.saved,
+        L = len(ctx.saved)
+        dx, grad_h, grad_c, dgs = _stack_backward(list(grads[:L]), list(grads[L:]), ctx.w, ctx.saved,
                                                   ctx.needs_input_grad[0])
         store = ctx.store
         for k in range(L):
