@@ -126,7 +126,7 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
     # Per self-fed step: predicted dq (and grip; and phi if "free") -> fed-back state (raw units)
     # -> one step of the LSTM stack. Set up once here, inside the autograd graph: a predictor
     # that computes only the head rows the feedback reads, with the denormalisation folded in
-    # (sampling falls back to the full head), and a stepper (stm.cell) that takes raw states.
+    # (sampling falls back to the full head), and a stepper (stm.cell) that takes centred states.
     layout = task.layout
     dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
     predict = model.feedback_predictor(cfg.feedback, dims)
@@ -134,8 +134,9 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
         def predict(h: torch.Tensor) -> torch.Tensor:
             return model.denormalize(model.predict(model.head(h), cfg.feedback, temperature=cfg.temperature,
                                                    generator=generator))
-    stepper = StackStepper(model.lstm, model.state_mean, model.state_std)
-    s_gt = model.denormalize(z_gt) if noisy else batch.states[:, :-1]  # ground truth for the stepper
+    stepper = StackStepper(model.lstm, model.state_std)
+    mean = model.state_mean
+    centred_gt = z_gt * model.state_std if noisy else batch.states[:, :-1] - mean  # ground truth for the stepper
     hs, fed = [], []  # top hidden states (pieces of (B, n, H)) and the self-fed (t, state) pairs
     hl = cl = None  # per-layer (h, c) lists
     t = 0
@@ -144,7 +145,7 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
         if hl is not None and n <= _STEPPED_GT_CHUNK:
             block = []
             for j in range(n):
-                hl, cl = stepper(s_gt[:, t + j], hl, cl)
+                hl, cl = stepper(centred_gt[:, t + j], hl, cl)
                 block.append(hl[-1])
             h = torch.stack(block, dim=1)
         else:  # one fused LSTM call
@@ -163,7 +164,7 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
             s, q = feedback_state(task, kin, predict(last), q, batch.psi[:, t], cfg.phi_mode)
             if cfg.detach_feedback:
                 s, q = s.detach(), q.detach()
-            hl, cl = stepper(s, hl, cl)
+            hl, cl = stepper(s - mean, hl, cl)
             last = hl[-1]
             block.append(last)
             fed.append((t, s))
