@@ -23,7 +23,7 @@ from typing import Any
 PROFILES_DIR = Path(__file__).parent / "profiles"
 FEEDBACK_MODES = ("sample", "component_mean", "mixture_mean")
 SAMPLERS = ("tpe", "grid", "random")
-OBJECTIVES = ("val", "final_distance")
+OBJECTIVES = ("val", "final_distance", "failure_rate")
 SWEEP_PARAMS = ("m", "u", "v", "feedback", "sigma_min")
 
 
@@ -53,8 +53,8 @@ class SweepConfig:
     trials: int = 20
     sampler: str = "tpe"
     storage: str = ""  # "" -> JournalFileBackend file next to mlflow.db; or postgresql://...
-    objective: str = "val"  # "val": last validation metric; "final_distance": rollout goal error
-    eval_rollouts: int = 10  # episodes for the final_distance objective
+    objective: str = "val"  # "val": last validation metric; "final_distance": rollout goal error; "failure_rate"
+    eval_rollouts: int = 10  # episodes for the final_distance / failure_rate objectives
     seed: int = 0
     study_name: str = ""  # "" -> "<task>-<variant>-<profile>"
     warmup_steps: int = 0  # median pruner: iterations before pruning may start

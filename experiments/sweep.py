@@ -15,8 +15,10 @@ The sampled values are applied after the variant, so v = 0 on an auto-conditione
 means "the same head, trained with teacher forcing".
 
 Objective (minimised): "val" = the last validation metric reported by `stm.train` (the
-closed-loop rollout error on held-out demonstrations), or "final_distance" = the mean final
-goal distance of `sweep.eval_rollouts` pybullet rollouts (circle: mean radial RMSE). The
+closed-loop error of rollouts on fresh task episodes), "final_distance" = the mean final
+goal distance of `sweep.eval_rollouts` pybullet rollouts (circle: mean radial RMSE), or
+"failure_rate" = 1 - their success rate (robust where one knocked-off block makes a mean
+distance of metres, as in pick-and-place). The
 median pruner watches the validation metric through `on_validation`.
 
 Storage: by default a JournalFileBackend file `optuna.journal` next to mlflow.db (safe for
@@ -317,11 +319,13 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
         log_metrics(client, run_id, {"time/train_seconds": result.seconds})
         if pruned["flag"]:
             raise optuna.TrialPruned(f"pruned at iteration {result.iterations}")
-        if cfg.sweep.objective == "final_distance":
+        if cfg.sweep.objective in ("final_distance", "failure_rate"):
             ev = {**dataclasses.asdict(cfg.eval), "rollouts": cfg.sweep.eval_rollouts}
             metrics, _ = evaluate_model(result.model, [cfg.sweep.task], ev, seed=seed, phi_mode=train_cfg.phi_mode,
                                         timings=False)
             log_metrics(client, run_id, metrics)
+            if cfg.sweep.objective == "failure_rate":
+                return 1.0 - metrics[f"{cfg.sweep.task}/success_rate"]
             key = "radial_rmse_mean" if cfg.sweep.task == "circle" else "final_distance_mean"
             return metrics[f"{cfg.sweep.task}/{key}"]
         if "val" not in last:

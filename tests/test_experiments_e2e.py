@@ -194,6 +194,19 @@ def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
     assert len(_children(client, exp.experiment_id, parent.info.run_id)) == 5
 
 
+def test_sweep_failure_rate_objective_is_one_minus_the_physics_success(tmp_path):
+    import optuna
+
+    args = ["sweep", "--profile", "smoke", "--workers", "1", "--trials", "1", "--study-name", "fr",
+            "--set", "sweep.objective=failure_rate", "--set", "sweep.eval_rollouts=3"]
+    proc = _cli(args, tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    backend = optuna.storages.journal.JournalFileBackend(str(tmp_path / "optuna.journal"))
+    trial = optuna.load_study(study_name="fr", storage=optuna.storages.JournalStorage(backend)).trials[0]
+    run = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}").get_run(trial.user_attrs["mlflow_run_id"])
+    assert trial.value == pytest.approx(1.0 - run.data.metrics["reacher/success_rate"])
+
+
 def test_ui_serves_the_store_and_stops_cleanly(smoke_study):
     import socket
     import urllib.request
