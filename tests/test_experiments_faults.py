@@ -36,7 +36,8 @@ def _cells(client: MlflowClient):
 @pytest.mark.slow
 def test_ctrl_c_marks_running_cells_killed_and_a_rerun_resumes(tmp_path):
     args = [sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--workers", "2",
-            "--study-name", "intr", "--set", "train.iters=150", *FAST]
+            "--study-name", "intr", "--set", "train.iters=1500", "--set", "train.checkpoint_every=50", *FAST]
+    # 1500 iterations: long enough that a quiet machine cannot finish a cell before the Ctrl-C below
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     proc = subprocess.Popen(args, cwd=tmp_path, env=_env(tmp_path), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
@@ -72,8 +73,8 @@ def test_ctrl_c_marks_running_cells_killed_and_a_rerun_resumes(tmp_path):
     assert after.keys() == runs.keys()  # resumed in the same runs, none added
     for run in after.values():
         assert run.info.status == "FINISHED"
-        assert int(run.data.tags["resumed_from_iteration"]) >= 5
-        assert run.data.metrics["train/iterations"] == 150
+        assert int(run.data.tags["resumed_from_iteration"]) >= 50
+        assert run.data.metrics["train/iterations"] == 1500
 
 
 def _smoke_cell(*overrides: str, variant: str = "lstm"):
