@@ -41,8 +41,11 @@ def test_ctrl_c_marks_running_cells_killed_and_a_rerun_resumes(tmp_path):
     # two auto-conditioned cells of 1500 iterations (~30 s each on a quiet machine): both are still
     # training when the Ctrl-C below comes (a teacher-forced smoke cell trains 1500 iterations in 3 s)
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    # SIGINT back to its default in the child: a test run started in the background (`cmd &`, as CI runners
+    # may) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt for a Ctrl-C
     proc = subprocess.Popen(args, cwd=tmp_path, env=_env(tmp_path), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     interrupted = False
     try:
         deadline = time.monotonic() + 240
