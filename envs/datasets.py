@@ -66,12 +66,18 @@ def cache_paths(task_name: str, seed: int, cache_dir: Path, variant: str = "") -
 
 def entry_paths(task: Task, seed: int, cache_dir: Path | None = None) -> tuple[Path, Path]:
     """Where load_demos(task, seed, cache_dir) keeps its entry (the model task's, for evaluation-only tasks)."""
+    task = _dataset_task(task)
+    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return cache_paths(task.name, seed, cache_dir, _variant(task, config_hash(task.config())))
+
+
+def _dataset_task(task: Task) -> Task:
+    """The task whose demonstrations `task` uses: itself, or its model_task for evaluation-only tasks."""
     if task.model_task and task.model_task != task.name:
         from envs.tasks.base import TASKS
 
-        task = _model_task_of(task, TASKS)
-    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    return cache_paths(task.name, seed, cache_dir, _variant(task, config_hash(task.config())))
+        return _model_task_of(task, TASKS)
+    return task
 
 
 def _variant(task: Task, chash: str) -> str:
@@ -146,14 +152,10 @@ def _generate(task: Task, seed: int, chash: str) -> tuple[Demos, dict[str, np.nd
 def load_demos(task: Task, seed: int = 0, cache_dir: Path | None = None) -> Demos:
     """The task's demonstrations for `seed`: from the cache when valid, else generated
     (deterministically per seed), cached and returned. `Demos.meta` holds the metadata."""
-    if task.model_task and task.model_task != task.name:
-        from envs.tasks.base import TASKS
-
-        task = _model_task_of(task, TASKS)
-    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    cache_dir.mkdir(parents=True, exist_ok=True)
+    task = _dataset_task(task)
+    npz_path, meta_path = entry_paths(task, seed, cache_dir)
+    npz_path.parent.mkdir(parents=True, exist_ok=True)
     chash = config_hash(task.config())
-    npz_path, meta_path = cache_paths(task.name, seed, cache_dir, _variant(task, chash))
     # one generator per entry at a time; other processes wait and then read its result
     with open(npz_path.with_name(f".{npz_path.stem}.lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
