@@ -174,6 +174,8 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
                    on_metrics=buffer.add, on_checkpoint=on_checkpoint, on_validation=on_validation,
                    progress=progress)
     buffer.flush()
+    from experiments.model_logging import log_stm  # the trained STM as the run's MLflow model "model"
+    log_stm(result.model, client, run_id)
     log.info("cell %s: trained in %.0fs; evaluating on %s", cell.key, result.seconds, ", ".join(cell.eval_tasks))
     log_metrics(client, run_id, {"time/train_seconds": result.seconds, "train/iterations": result.iterations})
 
