@@ -123,7 +123,7 @@ def dashboard(session: nox.Session) -> None:
 def browser(session: nox.Session) -> None:
     """Headless Chromium (Debian packages, installed when missing) over the MLflow UI, the
     dashboard and a report built from smoke studies run in the app environment;
-    `-- --screenshots docs/screenshots` also saves the pictures in the README."""
+    ACRMDN_SCREENSHOTS=docs/screenshots also saves the pictures in the README."""
     session.install("selenium>=4.20", "pytest>=8", "pytest-timeout>=2")
     app_python = Path(_app_env(session)["VIRTUAL_ENV"]) / "bin" / "python"
     # --confcutdir: the suite's conftest files import the project, which this small venv lacks

@@ -69,8 +69,12 @@ def log_stm(model, client, run_id: str) -> str:
     # created here in the run's experiment: log_model alone would put it in the fluent API's
     # current experiment (the default one) with its artifacts under the working directory
     run = client.get_run(run_id)
+    note = (f"Trained STM of run `{run.info.run_name}`. Load it with "
+            f"`mlflow.pytorch.load_model(\"runs:/{run_id}/{MODEL_NAME}\")` where this project is installed; "
+            "roll it out with `stm.rollout.generate` (README: Use a trained model).")
     created = client.create_logged_model(run.info.experiment_id, name=MODEL_NAME, source_run_id=run_id,
-                                         params=dict(run.data.params), model_type="stm")
+                                         params=dict(run.data.params), model_type="stm",
+                                         tags={"mlflow.note.content": note})
     previous = mlflow.get_tracking_uri()
     mlflow.set_tracking_uri(client.tracking_uri)  # log_model reaches the store through the fluent API
     try:
