@@ -39,7 +39,7 @@ def _install(session: nox.Session, extras: str = "") -> None:
 def _app_env(session: nox.Session) -> dict[str, str]:
     """Environment variables that put the `app` session's virtualenv first (nox keeps every
     session's virtualenv beside its shared cache_dir)."""
-    venv = session.cache_dir.parent / APP
+    venv = (session.cache_dir.parent / APP).absolute()  # absolute: commands may run in another folder
     return {"VIRTUAL_ENV": str(venv), "PATH": f"{venv / 'bin'}{os.pathsep}{os.environ.get('PATH', '')}"}
 
 

@@ -84,7 +84,8 @@ def log_stm(model, client, run_id: str) -> str:
                 input_example=x, pip_requirements=pinned_requirements(), serialization_format="pickle",
                 metadata={"class": f"{type(model).__module__}.{type(model).__qualname__}",
                           "forward": "normalised states (B, T, D) -> head outputs (B, T, out), (h, c)",
-                          "rollout": "stm.rollout.generate(model, task, episodes)"})
+                          "rollout": "stm.rollout.generate(model, task, episodes)",
+                          "git_commit": run.data.params.get("git_commit", "")})  # the acrmdn code it needs
     finally:
         mlflow.set_tracking_uri(previous)
     return info.model_id
