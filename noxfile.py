@@ -44,7 +44,8 @@ def _app_env(session: nox.Session) -> dict[str, str]:
 
 
 def _run_app(session: nox.Session, *args: str) -> None:
-    session.run("python", *args, *session.posargs, env=_app_env(session), external=True)
+    env = _app_env(session)  # nox finds the command on its own PATH: name the app's python in full
+    session.run(str(Path(env["VIRTUAL_ENV"]) / "bin" / "python"), *args, *session.posargs, env=env, external=True)
 
 
 @nox.session(default=False)
