@@ -18,6 +18,8 @@ from importlib import metadata
 import numpy as np
 from mlflow.entities import LoggedModelStatus
 
+from experiments.tracking import with_retries
+
 log = logging.getLogger(__name__)
 
 MODEL_NAME = "model"
@@ -37,11 +39,15 @@ def pinned_requirements() -> list[str]:
     return out
 
 
+def _run_models(client, run) -> list:
+    return list(client.search_logged_models(
+        experiment_ids=[run.info.experiment_id],
+        filter_string=f"source_run_id = '{run.info.run_id}' AND name = '{MODEL_NAME}'"))
+
+
 def logged_model_id(client, run_id: str) -> str | None:
     """The id of the run's READY model named MODEL_NAME, if one was logged (a resumed cell keeps it)."""
-    run = client.get_run(run_id)
-    found = client.search_logged_models(experiment_ids=[run.info.experiment_id],
-                                        filter_string=f"source_run_id = '{run_id}' AND name = '{MODEL_NAME}'")
+    found = _run_models(client, client.get_run(run_id))
     return next((m.model_id for m in found if m.status == LoggedModelStatus.READY), None)
 
 
@@ -57,10 +63,14 @@ def log_stm(model, client, run_id: str) -> str:
     import torch
     from mlflow.models import infer_signature
 
-    existing = logged_model_id(client, run_id)
-    if existing is not None:
-        log.info("run %s already has its MLflow model %s", run_id, existing)
-        return existing
+    run = client.get_run(run_id)
+    found = _run_models(client, run)
+    for m in found:
+        if m.status == LoggedModelStatus.READY:
+            log.info("run %s already has its MLflow model %s", run_id, m.model_id)
+            return m.model_id
+    for m in found:  # left PENDING or FAILED by a killed attempt: runs:/.../model must not find it
+        client.delete_logged_model(m.model_id)
     model = model.cpu().eval()
     x = example_input(model)
     with torch.no_grad():
@@ -68,7 +78,6 @@ def log_stm(model, client, run_id: str) -> str:
     signature = infer_signature(x, raw.numpy())
     # created here in the run's experiment: log_model alone would put it in the fluent API's
     # current experiment (the default one) with its artifacts under the working directory
-    run = client.get_run(run_id)
     note = (f"Trained STM of run `{run.info.run_name}`. Load it with "
             f"`mlflow.pytorch.load_model(\"runs:/{run_id}/{MODEL_NAME}\")` where this project is installed; "
             "roll it out with `stm.rollout.generate` (README: Use a trained model).")
@@ -79,7 +88,8 @@ def log_stm(model, client, run_id: str) -> str:
     mlflow.set_tracking_uri(client.tracking_uri)  # log_model reaches the store through the fluent API
     try:
         with _quiet(("mlflow.pytorch", "mlflow.models.model")):
-            info = mlflow.pytorch.log_model(
+            # MLflow's own client inside log_model: retried like ours on SQLite lock contention
+            info = with_retries(mlflow.pytorch.log_model)(
                 model, name=MODEL_NAME, model_id=created.model_id, run_id=run_id, signature=signature,
                 input_example=x, pip_requirements=pinned_requirements(), serialization_format="pickle",
                 metadata={"class": f"{type(model).__module__}.{type(model).__qualname__}",

@@ -73,6 +73,15 @@ def test_model_is_logged_once_into_the_runs_experiment(store_run):
     assert any(r.startswith("acrmdn") for r in requirements)
 
 
+def test_a_model_left_unfinished_by_a_killed_attempt_is_replaced(store_run):
+    client, run_id, exp = store_run
+    stale = client.create_logged_model(exp, name=MODEL_NAME, source_run_id=run_id)  # PENDING, no artifacts
+    assert logged_model_id(client, run_id) is None
+    new = log_stm(_tiny_stm(), client, run_id)
+    assert new != stale.model_id
+    assert [m.model_id for m in client.search_logged_models([exp])] == [new]
+
+
 def test_requirements_are_pinned_to_this_environment():
     pins = dict(r.split("==") for r in pinned_requirements())
     assert pins["torch"] == metadata.version("torch") and pins["mlflow"] == mlflow.__version__
