@@ -16,7 +16,8 @@ from torch import nn
 
 from stm import mdn
 from stm.model import STM, feedback_state
-from stm.packed_cell import PackedStackStepper
+from stm.train import _STEPPED_GT_CHUNK
+from stm.packed_cell import PackedStackStepper, layer_sequence
 
 
 class PackedSTM(nn.Module):
@@ -135,6 +136,26 @@ class PackView:
         return predict
 
 
+def fused_sequence(view: PackView, z: torch.Tensor, h: list[torch.Tensor] | None = None,
+                   c: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
+    """Normalised inputs z (K, B, n, D) through each model's stack in one fused LSTM call per
+    model (oneDNN's multi-step kernel on CPU: per model it beats any batched step for long
+    known input runs); top hidden states (K, B, n, H) and per-layer (h, c) after the last step."""
+    outs, hn, cn = [], [], []
+    for k in range(view.K):
+        flat = [t[k] for layer in view.lstm for t in layer]
+        hx = None if h is None else (torch.stack([x[k] for x in h]), torch.stack([x[k] for x in c]))
+        if hx is None:
+            zeros = z.new_zeros(len(view.lstm), z.shape[1], view.lstm[0][1].shape[-1])
+            hx = (zeros, zeros)
+        out, hk, ck = torch._VF.lstm(z[k], hx, flat, True, len(view.lstm), 0.0, True, False, True)
+        outs.append(out)
+        hn.append(hk)
+        cn.append(ck)
+    hn_, cn_ = torch.stack(hn, 1), torch.stack(cn, 1)  # (L, K, B, H)
+    return torch.stack(outs), list(hn_.unbind(0)), list(cn_.unbind(0))
+
+
 def packed_unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Tensor, steps: list[int],
                   task, cfg, kin, gens: list[torch.Generator]) -> torch.Tensor:
     """Head outputs (K, B, T, out) of K models, each under cfg's (u, v) schedule, as
@@ -152,33 +173,38 @@ def packed_unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: to
         centred = (view.normalize(states[:, :, :-1]) + noise) * view.state_std
     stepper = PackedStackStepper(view.lstm, view.state_std)
     hl, cl = stepper.zeros(centred)
-    hs: list[torch.Tensor] = []
+    hs: list[torch.Tensor] = []  # top hidden states, chunks (K, B, n, H)
     if cfg.v == 0:
-        for t in range(T):
-            hl, cl = stepper(centred[:, :, t], hl, cl)
-            hs.append(hl[-1])
-        return view.head(torch.stack(hs, dim=2))
+        return view.head(fused_sequence(view, centred / view.state_std)[0])
     layout = task.layout
     dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
     point = view.feedback_predictor(cfg.feedback, dims)
     predict = (lambda h, _t: point(h)) if point is not None else _sampler(view, cfg, gens, steps)
     t = 0
     while t < T:
-        for _ in range(min(cfg.u, T - t)):  # ground-truth steps
-            hl, cl = stepper(centred[:, :, t], hl, cl)
-            hs.append(hl[-1])
-            t += 1
+        n = min(cfg.u, T - t)  # ground-truth steps: stepped if few (a layer sequence's set-up costs more)
+        if n > _STEPPED_GT_CHUNK or t == 0:
+            h, hl, cl = layer_sequence(stepper, centred[:, :, t: t + n], hl, cl)  # (measured: beats fused here)
+        else:
+            block = []
+            for j in range(n):
+                hl, cl = stepper(centred[:, :, t + j], hl, cl)
+                block.append(hl[-1])
+            h = torch.stack(block, dim=2)
+        hs.append(h)
+        t += n
         if t >= T:
             break
-        qt = q[:, :, t - 1]
+        qt, block = q[:, :, t - 1], []
         for _ in range(min(cfg.v, T - t)):  # self-fed steps
             s, qt = feedback_state(task, kin, predict(hl[-1], t), qt, psi[:, :, t], cfg.phi_mode)
             if cfg.detach_feedback:
                 s, qt = s.detach(), qt.detach()
             hl, cl = stepper(s - mean, hl, cl)
-            hs.append(hl[-1])
+            block.append(hl[-1])
             t += 1
-    return view.head(torch.stack(hs, dim=2))
+        hs.append(torch.stack(block, dim=2))
+    return view.head(torch.cat(hs, dim=2))
 
 
 def _sampler(view: PackView, cfg, gens: list[torch.Generator], steps: list[int]):
