@@ -16,8 +16,8 @@ from torch import nn
 
 from stm import mdn
 from stm.model import STM, feedback_state
-from stm.train import _STEPPED_GT_CHUNK
 from stm.packed_cell import PackedStackStepper, layer_sequence
+from stm.train import _STEPPED_GT_CHUNK
 
 
 class PackedSTM(nn.Module):
@@ -122,7 +122,7 @@ class PackView:
             return lambda h: torch.baddbmm(b_fb.unsqueeze(1), h, w_fb)
         if mode not in ("component_mean", "mixture_mean"):
             return None
-        m, D, K = self.config.mixtures, self.dim, self.K
+        m, D = self.config.mixtures, self.dim
         w_mu = w[:, 2 * m:].unflatten(1, (m, D))[:, :, :dims] * std[:, None]  # (K, m, dims, H)
         b_mu = torch.addcmul(mean, b[:, 2 * m:].unflatten(1, (m, D))[:, :, :dims], std)
         w_fb = torch.cat([w[:, :m], w_mu.flatten(1, 2)], 1).transpose(1, 2)  # (K, H, m + m * dims)

@@ -29,8 +29,15 @@ from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed import PackedAdam, PackedSTM, clip_per_model, packed_unroll
-from stm.train import (DemoTensors, TrainingDiverged, TrainResult, Validation, _check_resumable,
-                       _checkpoint_payload, _sample_indices)
+from stm.train import (
+    DemoTensors,
+    TrainingDiverged,
+    TrainResult,
+    Validation,
+    _check_resumable,
+    _checkpoint_payload,
+    _sample_indices,
+)
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +154,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
         if seeds[k].failure is None:
             save(k)
 
-    for k, s in enumerate(seeds):
+    for s in seeds:
         s.done = s.iteration >= s.cfg.iters or s.stopped_early
     while True:
         for k, s in enumerate(seeds):
