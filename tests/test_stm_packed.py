@@ -164,3 +164,19 @@ def test_unpackable_configs_are_refused():
     with pytest.raises(ValueError, match="differ in feedback"):
         check_packable([TINY, TINY], [BASE, TrainConfig.from_dict({**BASE.to_dict(), "feedback": "sample"})])
     check_packable([TINY, TINY], [BASE, TrainConfig.from_dict({**BASE.to_dict(), "seed": 4, "lr": 1e-2})])
+
+
+def test_bench_reports_packed_speedups(monkeypatch, capsys):
+    """`python -m stm.bench --json` gives each training entry packed_k and the packed speedups,
+    (K x one model's ms/iter) / (the pack's ms/iter), here at a tiny size (the numbers are not checked)."""
+    from stm import bench
+
+    monkeypatch.setitem(bench.SIZES, "reacher", dict(hidden=8, mixtures=2, batch=4, steps=6, gripper=False))
+    out = bench.main(["--json", "--sizes", "reacher", "--rounds", "1", "--reps", "1", "--no-rollouts"])
+    entry = out["training"][0]
+    ms = entry["ms_per_iter"]
+    assert entry["size"] == "reacher" and entry["packed_k"] == 3
+    for k in ("tf", "ac_u2v2", "ac_u5v5"):
+        assert entry[f"packed_speedup_{k}"] == pytest.approx(3 * ms[k] / ms[f"packed_{k}"], rel=0.02)
+    assert entry["packed_speedup_ac"] == min(entry["packed_speedup_ac_u2v2"], entry["packed_speedup_ac_u5v5"])
+    assert '"packed_speedup_ac"' in capsys.readouterr().out
