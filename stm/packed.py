@@ -165,17 +165,19 @@ def packed_unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: to
     K, B, T1, D = states.shape
     T = T1 - 1
     mean = view.state_mean
-    centred = states[:, :, :-1] - mean  # ground-truth inputs, centred (the stepper folds in the std)
-    if cfg.input_noise > 0:
-        noise = torch.zeros_like(centred)
+    z_gt = view.normalize(states[:, :, :-1])
+    noisy = cfg.input_noise > 0
+    if noisy:  # each model's noise from its own generator, over its own steps (as train draws it)
+        noise = torch.zeros_like(z_gt)
         for k in range(K):
             noise[k, :, : steps[k]] = cfg.input_noise * torch.randn((B, steps[k], D), generator=gens[k])
-        centred = (view.normalize(states[:, :, :-1]) + noise) * view.state_std
+        z_gt = z_gt + noise
+    if cfg.v == 0:
+        return view.head(fused_sequence(view, z_gt)[0])
+    centred = z_gt * view.state_std if noisy else states[:, :, :-1] - mean  # the stepper folds in the std
     stepper = PackedStackStepper(view.lstm, view.state_std)
     hl, cl = stepper.zeros(centred)
     hs: list[torch.Tensor] = []  # top hidden states, chunks (K, B, n, H)
-    if cfg.v == 0:
-        return view.head(fused_sequence(view, centred / view.state_std)[0])
     layout = task.layout
     dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
     point = view.feedback_predictor(cfg.feedback, dims)
@@ -279,7 +281,8 @@ class PackedAdam:
         state_dict of an Adam over the extracted model, for its param_groups)."""
         state = {i: {"step": torch.tensor(float(self.steps[k])), "exp_avg": m[k].clone(), "exp_avg_sq": v[k].clone()}
                  for i, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True))}
-        return {"state": state if self.steps[k] > 0 else {}, "param_groups": template["param_groups"]}
+        groups = [{**g, "lr": float(self.lr[k])} for g in template["param_groups"]]
+        return {"state": state if self.steps[k] > 0 else {}, "param_groups": groups}
 
     def load_model_state(self, k: int, state: dict) -> None:
         """Slot k from a torch.optim.Adam state_dict of one model (as a single-model checkpoint holds)."""

@@ -154,8 +154,9 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
         if seeds[k].failure is None:
             save(k)
 
-    for s in seeds:
-        s.done = s.iteration >= s.cfg.iters or s.stopped_early
+    for k, s in enumerate(seeds):
+        if s.iteration >= s.cfg.iters or s.stopped_early:  # resumed complete: saved again, as train does
+            finish(k)
     while True:
         for k, s in enumerate(seeds):
             if not s.done and s.cfg.max_seconds and elapsed(s) >= s.cfg.max_seconds:

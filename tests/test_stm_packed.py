@@ -83,11 +83,13 @@ def test_packed_training_equals_separate_training(toy, variant, extra):
 
 
 def test_seeds_at_different_schedule_positions(toy):
-    """Per-seed tf_warmup and (u, v): seeds in different schedule groups train as alone."""
+    """Per-seed tf_warmup, (u, v), iters, lr and clipping: seeds in different schedule groups,
+    finishing at different iterations, train as alone."""
     task, demos = toy
     model_cfg, cfgs = _configs("ac-lstm-mdn")
     cfgs = [TrainConfig.from_dict({**c.to_dict(), **o}) for c, o in
-            zip(cfgs, [{"tf_warmup": 0}, {"tf_warmup": 5}, {"u": 1, "v": 3, "iters": 5}], strict=True)]
+            zip(cfgs, [{"tf_warmup": 0, "lr": 1e-2}, {"tf_warmup": 5, "grad_clip": 0.05}, {"u": 1, "v": 3, "iters": 5}],
+                strict=True)]
     packed = train_packed(model_cfg, cfgs, task, demos)
     for c, p in zip(cfgs, packed, strict=True):
         _assert_same_run(train(model_cfg, c, task, demos), p)
