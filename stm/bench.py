@@ -12,7 +12,8 @@ linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same
 schedules for a pack of K = 3 models trained together (stm.packed): packed_speedup_* =
 (K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the lower of the two
 auto-conditioned schedules'. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
-3 models' rollouts batched (stm.packed_rollout) against one after the other.
+3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and
+for 34 episodes (an evaluation cell's).
 
 Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
 time also counts the other processes' load. Ratios are what to read.
@@ -92,6 +93,7 @@ class PlainMDN(nn.Module):
 
 
 PACK = 3  # models per pack
+EVAL_EPISODES = 34  # episodes a cell evaluates per seed: where batching the K models pays (1,000 are compute-bound)
 CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
 _clock = CLOCKS["cpu"]
 
@@ -211,16 +213,21 @@ def rollout_bench(n: int = 1000, steps: int = 70, rounds: int = 3) -> dict:
         models.append(STM(model.config, task.layout, *stats).eval())
     pack = PackedSTM.from_models(models)
     generate_packed(pack, task, episodes[:8])  # warm-up
-    secs, separate, packed = [], [], []
+    few = episodes[:EVAL_EPISODES]
+    secs, separate, packed, separate_few, packed_few = [], [], [], [], []
     for _ in range(rounds):  # interleaved
         secs.append(_time_once(lambda: generate(model, task, episodes), 1))  # (generate's own .seconds is wall)
         separate.append(_time_once(lambda: [generate(m, task, episodes) for m in models], 1))
         packed.append(_time_once(lambda: generate_packed(pack, task, episodes), 1))
+        separate_few.append(_time_once(lambda: [generate(m, task, few) for m in models], 3))
+        packed_few.append(_time_once(lambda: generate_packed(pack, task, few), 3))
     return {"rollouts": n, "steps": steps, "fk_grounding": True, "seconds": round(statistics.median(secs), 3),
             "seconds_all": [round(s, 3) for s in secs], "packed_k": PACK,
             "packed_seconds": round(statistics.median(packed), 3),
             "separate_seconds": round(statistics.median(separate), 3),
-            "packed_speedup": round(statistics.median(separate) / statistics.median(packed), 3)}
+            "packed_speedup": round(statistics.median(separate) / statistics.median(packed), 3),
+            "eval_episodes": EVAL_EPISODES,
+            "packed_speedup_eval_episodes": round(statistics.median(separate_few) / statistics.median(packed_few), 3)}
 
 
 def main(argv: list[str] | None = None) -> dict:
