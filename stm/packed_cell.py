@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from stm.cell import _Deferred, _StackStep, _Weights, tanh
+from stm.cell import _Deferred, _StackStep, _Weights
 
 # nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), the g rows doubled (one sigmoid for all gates), as in stm.cell
 
@@ -76,7 +76,7 @@ class _LayerSeq(torch.autograd.Function):
             i, f, o = sig[..., :H], sig[..., H: 2 * H], sig[..., 2 * H: 3 * H]
             g = sig[..., 3 * H:] * 2.0 - 1.0
             c_new = torch.addcmul(f * c, i, g)
-            tc = tanh(c_new)
+            tc = torch.tanh(c_new)
             h_new = o * tc
             gds.append(torch.cat([g, c, tc, i * 2.0], -1) * torch.addcmul(sig, sig, sig, value=-1.0))
             odts.append(torch.addcmul(o, h_new, tc, value=-1.0))
