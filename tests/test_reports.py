@@ -306,3 +306,45 @@ def test_table_renderings_escape_their_markup():
     t = Table("t", "rate_1 & 50%", ["variant", "a|b"], [["x_1 <b>", "50% ± 2 †"]], ["note #1"])
     assert r"rate\_1 \& 50\%" in t.to_latex() and r"50\% $\pm$ 2 $^\dagger$" in t.to_latex()
     assert "&lt;b&gt;" in t.to_html() and "a\\|b" in t.to_markdown()
+
+
+def _failed_only_store(tmp_path) -> str:
+    """A store whose only study failed: every cell FAILED before logging a metric."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(uri)
+    exp = client.create_experiment("ablation", artifact_location=(tmp_path / "artifacts").as_uri())
+    parent = client.create_run(exp, tags={"kind": "ablation", "profile": "smoke", "study_name": "broken"})
+    for v in VARIANTS:
+        _child(client, exp, parent.info.run_id, "reacher", v, 0, {}, status="FAILED")
+    client.set_terminated(parent.info.run_id, "FAILED")
+    return uri
+
+
+def test_store_whose_only_study_failed_is_one_line_exit_2_and_no_folder(tmp_path, capsys):
+    uri = _failed_only_store(tmp_path)
+    capsys.readouterr()  # MLflow's own schema-creation log lines
+    out = tmp_path / "out"
+    assert main(["--tracking-uri", uri, "--out", str(out), "--no-log-artifacts"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("reports: error: ") and "no finished run" in err and "\n" not in err, err
+    assert "broken" in err and "2 FAILED" in err
+    assert not out.exists()
+
+
+def test_index_opens_with_headline_table_and_figures_and_folds_the_metric_dump(built):
+    index = (built / "test-study" / "index.html").read_text()
+    order = [index.index(s) for s in ("Success rate (Table I, extended)", "src='success_bars.png'",
+                                      "src='circles.png'", "src='compute_time.png'", "Circle drawing",
+                                      "src='training_curves.png'", "<details>", "All logged metrics")]
+    assert order == sorted(order), order
+    folded = index[index.index("<details>"):index.index("</details>")]
+    assert "All logged metrics" in folded and 'id="T_metrics_table"' in folded
+    assert index.count("<details>") == 1
+
+
+def test_no_generated_file_names_a_path_of_the_machine(store, built):
+    roots = {str(store["tmp"]), str(built), str(Path.home()), str(Path.cwd())}
+    for path in built.rglob("*"):
+        if path.suffix in {".md", ".html", ".tex", ".csv"}:
+            text = path.read_text()
+            assert not [r for r in roots if r in text], path
