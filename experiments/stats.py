@@ -17,12 +17,14 @@ from scipy.stats import binomtest
 CONFIDENCE = 0.95
 BOOTSTRAP_REPLICATES = 4000
 BOOTSTRAP_SEED = 0  # fixed: the same store gives the same table, byte for byte
+MIN_SEEDS_FOR_BOOTSTRAP = 2
 
 # What the columns of the success table mean, for the notes under it (one wording everywhere).
 SUCCESS_NOTE = ("success: mean over seeds of each seed's success rate; per seed: each training seed's rate; "
                 "Wilson: 95% interval over all rollouts pooled as independent trials; seed-aware: 95% cluster "
-                "bootstrap (seeds resampled, then episodes within each seed), which widens with the spread "
-                "between seeds and collapses at 0% and 100%; rollouts: evaluation episodes pooled over seeds.")
+                "bootstrap (seeds resampled, then episodes within each seed; needs >= 2 seeds), which widens with "
+                "the spread between seeds and collapses at 0% and 100% (read Wilson there); rollouts: evaluation "
+                "episodes pooled over seeds; seeds: training seeds with a finished run.")
 
 
 def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
@@ -79,7 +81,9 @@ def success_cell(per_seed: Mapping[int, tuple[float, float]]) -> dict:
     n = sum(c[1] for c in counts.values())
     rates = {s: r for s, (r, _) in logged.items()}
     low, high = wilson_interval(k, n)
-    blow, bhigh = cluster_bootstrap_interval([np.r_[np.ones(ks), np.zeros(ns - ks)] for ks, ns in counts.values()])
+    # one seed says nothing about the spread between seeds: no seed-aware interval then
+    blow, bhigh = cluster_bootstrap_interval([np.r_[np.ones(ks), np.zeros(ns - ks)] for ks, ns in counts.values()]) \
+        if len(counts) >= MIN_SEEDS_FOR_BOOTSTRAP else (math.nan, math.nan)
     vals = np.array(list(rates.values()), dtype=float)
     return {"mean": float(vals.mean()) if vals.size else math.nan,
             "std": float(vals.std()) if vals.size else math.nan,
