@@ -415,3 +415,19 @@ def test_study_summary_prints_the_report_success_table(store):
         assert column in header
     row = next(line for line in text.splitlines() if re.match(r"\| reacher +\| lstm +\|", line))
     assert "60% / 80%" in row and re.search(r"\| 20 +\| 2 +\|$", row)  # 2 seeds x 10 rollouts
+
+
+def test_failed_study_beside_a_good_one_is_skipped_with_one_line(tmp_path, capsys):
+    uri = _failed_only_store(tmp_path)
+    client = MlflowClient(uri)
+    sexp = client.create_experiment("sweep", artifact_location=(tmp_path / "sweep-artifacts").as_uri())
+    sp = client.create_run(sexp, tags={"kind": "sweep", "profile": "smoke", "study_name": "good-sweep"})
+    _child(client, sexp, sp.info.run_id, "reacher", "ac-lstm-mdn", 0, {"objective": 0.5},
+           params={"trial.m": 1}, extra_tags={"trial": "0", "trial_state": "COMPLETE"})
+    client.set_terminated(sp.info.run_id)
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["--tracking-uri", uri, "--out", str(out), "--no-log-artifacts"]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("reports:")]
+    assert err == ["reports: skipped: ablation study 'broken' has no finished run (2 FAILED)"]
+    assert (out / "good-sweep" / "index.html").exists() and not (out / "broken").exists()
