@@ -8,16 +8,18 @@ from pathlib import Path
 FORMATS = (".png", ".pdf")
 
 
-def save_figure(fig, path_stem: str | Path, dpi: float | None = 130) -> list[str]:
+def save_figure(fig, path_stem: str | Path, dpi: float | None = 130, **savefig) -> list[str]:
     """Write `fig` as <stem>.png and <stem>.pdf (creating the folder), close it, return the paths.
-    dpi None: matplotlib's rcParams["savefig.dpi"] (the caller's style decides)."""
+    dpi None: matplotlib's rcParams["savefig.dpi"] (the caller's style decides); other keywords (e.g.
+    bbox_inches="tight") go to Figure.savefig."""
     import matplotlib.pyplot as plt
 
     stem = Path(path_stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
     paths = [str(stem.parent / f"{stem.name}{ext}") for ext in FORMATS]
-    kwargs = {} if dpi is None else {"dpi": dpi}
+    if dpi is not None:
+        savefig["dpi"] = dpi
     for p in paths:
-        fig.savefig(p, **kwargs)
+        fig.savefig(p, **savefig)
     plt.close(fig)
     return paths
