@@ -73,7 +73,8 @@ def study_index(study: Study, folder: Path, tables: list[Table], figures: list[F
     main = [t for t in tables if t.name not in FOLDED_TABLES]
     folded = [t for t in tables if t.name in FOLDED_TABLES]
     by_name = {f.name: f for f in figures}
-    top = [by_name[n] for n in HEADLINE_FIGURES if n in by_name and not by_name[n].gap] or figures[:1]
+    top = [by_name[n] for n in HEADLINE_FIGURES if n in by_name and not by_name[n].gap] \
+        or [f for f in figures if not f.gap][:1]
     html = _ENV.get_template("study_index.html.j2").render(
         css=CSS, study=study, n_children=len(ch), n_finished=int((ch["status"] == "FINISHED").sum()),
         n_failed=len(failed), info=info, seconds=seconds,
