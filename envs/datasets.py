@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from envs.fileio import atomic_write_bytes, atomic_write_text
 from envs.tasks.base import Demos, Task
 
 log = logging.getLogger(__name__)
@@ -117,12 +118,6 @@ def _read(npz_path: Path, meta_path: Path, task_name: str, seed: int, chash: str
     return Demos(**arrays, meta=meta)
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 def _generate(task: Task, seed: int, chash: str) -> tuple[Demos, dict[str, np.ndarray], dict[str, Any]]:
     t0 = time.perf_counter()
     demos = task.demos(seed)
@@ -168,8 +163,8 @@ def load_demos(task: Task, seed: int = 0, cache_dir: Path | None = None) -> Demo
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         meta_path.unlink(missing_ok=True)  # the entry is invalid until both files are written
-        _atomic_write(npz_path, buf.getvalue())
-        _atomic_write(meta_path, json.dumps(meta, indent=1, default=str).encode())
+        atomic_write_bytes(npz_path, buf.getvalue())
+        atomic_write_text(meta_path, json.dumps(meta, indent=1, default=str))
         log.info("generated %d %s demos in %.1f s -> %s", len(demos), task.name, meta["generation_seconds"], npz_path)
         return demos
 
