@@ -75,9 +75,9 @@ def entry_paths(task: Task, seed: int, cache_dir: Path | None = None) -> tuple[P
 def _dataset_task(task: Task) -> Task:
     """The task whose demonstrations `task` uses: itself, or its model_task for evaluation-only tasks."""
     if task.model_task and task.model_task != task.name:
-        from envs.tasks.base import TASKS
+        from envs.tasks.registry import task_class
 
-        return _model_task_of(task, TASKS)
+        return _model_task_of(task, task_class(task.model_task))
     return task
 
 
@@ -169,10 +169,9 @@ def load_demos(task: Task, seed: int = 0, cache_dir: Path | None = None) -> Demo
         return demos
 
 
-def _model_task_of(task: Task, registry: dict[str, type[Task]]) -> Task:
-    """The training task behind an evaluation-only task, with the same settings where it
-    is a subclass of it (e.g. reacher-changing-goal -> reacher)."""
-    cls = registry[task.model_task]
+def _model_task_of(task: Task, cls: type[Task]) -> Task:
+    """The training task (class `cls`) behind an evaluation-only task, with the same settings
+    where it is a subclass of it (e.g. reacher-changing-goal -> reacher)."""
     if isinstance(task, cls):
         twin = cls.__new__(cls)
         twin.__dict__.update(task.__dict__)
