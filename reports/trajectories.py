@@ -9,13 +9,16 @@ from pathlib import Path
 import matplotlib.lines
 import numpy as np
 
+from envs.tasks import task_class, tasks_with_panel
 from reports import paper
 from reports.plotting import FigureResult, gap, mark_gap, panel_grid, plt, save, variant_color
 from reports.store import Study
 
-CHANGING_GOAL_TASKS = ("reacher-changing-goal", "pick-place-changing-goal")
-PATH_TASKS = ("reacher", "pick-place", "stack", "reacher-changing-goal", "pick-place-changing-goal", "circle")
 EPISODES_PER_PANEL = 3
+# which tasks each panel shows is the tasks' own choice (Task.panels), in report order
+CIRCLE_TASKS = tasks_with_panel("circles")
+CHANGING_GOAL_TASKS = tasks_with_panel("changing_goal")
+PATH_TASKS = tasks_with_panel("tip_paths")
 
 
 def representative_run(study: Study, variant: str, eval_task: str) -> tuple[str, dict[str, np.ndarray]] | None:
@@ -37,22 +40,20 @@ def _row(arrays: dict[str, np.ndarray], key: str, i: int) -> np.ndarray | None:
 
 
 # -------------------------------------------------------------------------------------------- circles
-def _default_circle_centre(path: np.ndarray) -> np.ndarray:
-    """The circle task's fixed centre (an envs constant), else the path's mean point."""
-    try:
-        from envs.tasks.circle import CENTRE
-        return np.asarray(CENTRE, dtype=float)
-    except Exception:  # noqa: BLE001 - envs may be unavailable where only the store is
-        return np.nanmean(path, axis=0)
+def _default_circle_centre(task: str, path: np.ndarray) -> np.ndarray:
+    """The task's "centre" landmark (Task.landmarks), else the path's mean point."""
+    centre = task_class(task)().landmarks().get("centre")
+    return np.asarray(centre, dtype=float) if centre is not None else np.nanmean(path, axis=0)
 
 
-def _ideal_circle(arrays: dict[str, np.ndarray], i: int, path: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+def _ideal_circle(task: str, arrays: dict[str, np.ndarray], i: int, path: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """(centre, ideal xy points relative to it or None)."""
     ideal = _row(arrays, "ideal_tip", i)
     centre = _row(arrays, "center", i)
     radius = _row(arrays, "radius", i)
     if centre is None:
-        centre = np.nanmean(ideal, axis=0) if ideal is not None else _default_circle_centre(path)
+        centre = np.nanmean(ideal, axis=0) if ideal is not None else _default_circle_centre(task, path)
     if ideal is not None:
         return centre, (ideal - centre)[:, :2]
     if radius is not None:
@@ -64,10 +65,11 @@ def _ideal_circle(arrays: dict[str, np.ndarray], i: int, path: np.ndarray) -> tu
 def circles(study: Study, folder: Path) -> FigureResult:
     name, title = "circles", "Generated vs ideal circles"
     variants = study.variants
-    reps = {v: representative_run(study, v, "circle") for v in variants}
+    task = CIRCLE_TASKS[0] if CIRCLE_TASKS else ""
+    reps = {v: representative_run(study, v, task) for v in variants} if task else {}
     reps = {v: r for v, r in reps.items() if r is not None}
     if not reps:
-        return gap(name, title, "no run logged rollouts/circle.npz")
+        return gap(name, title, f"no run logged rollouts/{task or '<circle task>'}.npz")
     radii = sorted({round(float(r), 4) for _, a in reps.values() for r in np.atleast_1d(a.get("radius", []))
                     if not math.isnan(float(r))})
     if not radii:  # no radius array: one panel per episode index
@@ -82,7 +84,7 @@ def circles(study: Study, folder: Path) -> FigureResult:
                 continue
             i = idx[0]
             path = np.asarray(arrays["tip"][i], dtype=float)
-            centre, ideal = _ideal_circle(arrays, i, path)
+            centre, ideal = _ideal_circle(task, arrays, i, path)
             if ideal is not None and not drew_ideal:
                 ax.plot(ideal[:, 0] * 100, ideal[:, 1] * 100, "k--", lw=1.2)
                 drew_ideal = True
@@ -158,7 +160,7 @@ def tip_paths(study: Study, folder: Path) -> FigureResult:
 def _eval_tasks(study: Study) -> set[str]:
     em = study.eval_metrics()
     found = set(em["eval_task"]) if not em.empty else set()
-    return found | ({"circle"} if not study.circle_metrics().empty else set())
+    return found | (set(CIRCLE_TASKS) if not study.circle_metrics().empty else set())
 
 
 def changing_goal(study: Study, folder: Path) -> FigureResult:
