@@ -143,3 +143,23 @@ def test_evaluation_tasks_take_the_trained_tasks_options_they_accept():
     assert cg.n_demos == 90 and cg.start_joint_range == 0.2
     circle = task_class("circle").for_evaluation({"n_demos": 90}, {"circle_radii": [0.05], "rollouts": 3})
     assert circle.eval_radii == (0.05,)
+
+
+# Comparisons that branch on a task's name in another package's files still to be switched to the Task API
+# (owned by another branch at the time of writing: sweep.py's objective -> Task.sweep_objective; store.py's
+# circle frame key). Remove an entry once its file asks the task.
+PENDING_NAME_BRANCHES = {("experiments/sweep.py", "cfg.sweep.task == 'circle'"),
+                         ("reports/store.py", "'circle' not in self._frames")}
+
+
+def test_no_package_outside_envs_compares_a_task_name():
+    root = TASKS_DIR.parent.parent
+    found = set()
+    for pkg in ("experiments", "reports", "stm"):
+        for path in sorted((root / pkg).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Compare):
+                    consts = {n.value for n in ast.walk(node) if isinstance(n, ast.Constant)}
+                    if consts & set(TASKS):
+                        found.add((str(path.relative_to(root)), ast.unparse(node)))
+    assert found <= PENDING_NAME_BRANCHES, sorted(found - PENDING_NAME_BRANCHES)

@@ -1,5 +1,9 @@
 """Registered tasks: importing this package imports every module in envs/tasks/
-(envs.tasks.registry.discover), so a new task is one new module with an @register class."""
+(envs.tasks.registry.discover), so a new task is one new module with an @register class.
+
+Adding a task: envs/tasks/<name>.py with a `@register`-ed subclass of envs.tasks.base.Task
+(the interface and its defaults are documented there) and tests/test_tasks_<name>.py.
+An evaluation-only task sets `model_task` to the training task whose model it uses."""
 
 from envs.tasks.base import Demos, Episode, StateLayout, Task
 from envs.tasks.registry import (
