@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from envs.tasks import task_names
 from reports import paper
 from reports.plotting import FigureResult, gap, mark_gap, plt, save, variant_color
 from reports.stats import curve_band
@@ -100,6 +99,8 @@ def compute_time(study: Study, folder: Path) -> FigureResult:
     df = df[df["seconds"] > 0]
     if df.empty:
         return gap(name, title, "no run logged rollouts/ik_timing.json or time/*_seconds_per_traj")
+    from envs.tasks import task_names  # here: it loads torch and pybullet
+
     order = task_names()  # the tasks' report order (Task.report_rank)
     tasks = [t for t in order if t in set(df["eval_task"])] + sorted(set(df["eval_task"]) - set(order))
     keys = list(TIMING_KEYS)

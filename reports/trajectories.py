@@ -9,16 +9,18 @@ from pathlib import Path
 import matplotlib.lines
 import numpy as np
 
-from envs.tasks import task_class, tasks_with_panel
 from reports import paper
 from reports.plotting import FigureResult, gap, mark_gap, panel_grid, plt, save, variant_color
 from reports.store import Study
 
 EPISODES_PER_PANEL = 3
-# which tasks each panel shows is the tasks' own choice (Task.panels), in report order
-CIRCLE_TASKS = tasks_with_panel("circles")
-CHANGING_GOAL_TASKS = tasks_with_panel("changing_goal")
-PATH_TASKS = tasks_with_panel("tip_paths")
+
+
+def panel_tasks(panel: str) -> list[str]:
+    """The tasks a panel shows: their own choice (Task.panels), in report order."""
+    from envs.tasks import tasks_with_panel  # here, not at import: it loads torch and pybullet
+
+    return tasks_with_panel(panel)
 
 
 def representative_run(study: Study, variant: str, eval_task: str) -> tuple[str, dict[str, np.ndarray]] | None:
@@ -42,6 +44,8 @@ def _row(arrays: dict[str, np.ndarray], key: str, i: int) -> np.ndarray | None:
 # -------------------------------------------------------------------------------------------- circles
 def _default_circle_centre(task: str, path: np.ndarray) -> np.ndarray:
     """The task's "centre" landmark (Task.landmarks), else the path's mean point."""
+    from envs.tasks import task_class
+
     centre = task_class(task)().landmarks().get("centre")
     return np.asarray(centre, dtype=float) if centre is not None else np.nanmean(path, axis=0)
 
@@ -65,7 +69,8 @@ def _ideal_circle(task: str, arrays: dict[str, np.ndarray], i: int, path: np.nda
 def circles(study: Study, folder: Path) -> FigureResult:
     name, title = "circles", "Generated vs ideal circles"
     variants = study.variants
-    task = CIRCLE_TASKS[0] if CIRCLE_TASKS else ""
+    circle_tasks = panel_tasks("circles")
+    task = circle_tasks[0] if circle_tasks else ""
     reps = {v: representative_run(study, v, task) for v in variants} if task else {}
     reps = {v: r for v, r in reps.items() if r is not None}
     if not reps:
@@ -116,7 +121,8 @@ def _set_3d_labels(ax) -> None:
 def tip_paths(study: Study, folder: Path) -> FigureResult:
     name, title = "tip_paths", "Rollout tool-tip paths in 3D"
     variants = study.variants
-    tasks = [t for t in PATH_TASKS if t in _eval_tasks(study)] or list(PATH_TASKS[:3])
+    path_tasks = panel_tasks("tip_paths")
+    tasks = [t for t in path_tasks if t in _eval_tasks(study)] or path_tasks[:3]
     reps = {(t, v): representative_run(study, v, t) for t in tasks for v in variants}
     if all(r is None for r in reps.values()):
         return gap(name, title, "no run logged rollouts/<task>.npz")
@@ -160,20 +166,21 @@ def tip_paths(study: Study, folder: Path) -> FigureResult:
 def _eval_tasks(study: Study) -> set[str]:
     em = study.eval_metrics()
     found = set(em["eval_task"]) if not em.empty else set()
-    return found | (set(CIRCLE_TASKS) if not study.circle_metrics().empty else set())
+    return found | (set(panel_tasks("circles")) if not study.circle_metrics().empty else set())
 
 
 def changing_goal(study: Study, folder: Path) -> FigureResult:
     name, title = "changing_goal", "Changing goal: adapted path vs the expert's direct path"
     variants = study.variants
-    reps = {(t, v): representative_run(study, v, t) for t in CHANGING_GOAL_TASKS for v in variants}
+    tasks = panel_tasks("changing_goal")
+    reps = {(t, v): representative_run(study, v, t) for t in tasks for v in variants}
     if all(r is None for r in reps.values()):
         return gap(name, title, "no run logged rollouts/<changing-goal task>.npz")
-    fig = plt.figure(figsize=(3.9 * len(variants), 3.9 * len(CHANGING_GOAL_TASKS)))
+    fig = plt.figure(figsize=(3.9 * len(variants), 3.9 * len(tasks)))
     missing = []
-    for r, t in enumerate(CHANGING_GOAL_TASKS):
+    for r, t in enumerate(tasks):
         for c, v in enumerate(variants):
-            ax = fig.add_subplot(len(CHANGING_GOAL_TASKS), len(variants), r * len(variants) + c + 1,
+            ax = fig.add_subplot(len(tasks), len(variants), r * len(variants) + c + 1,
                                  projection="3d")
             ax.set_title(f"{paper.task_label(t)}\n{paper.variant_label(v)}", fontsize=9)
             _set_3d_labels(ax)
