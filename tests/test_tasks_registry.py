@@ -140,9 +140,11 @@ def test_random_tasks_give_each_seed_its_own_episodes(name):
 
 def test_evaluation_tasks_take_the_trained_tasks_options_they_accept():
     cg = task_class("reacher-changing-goal").for_evaluation({"n_demos": 90, "start_joint_range": 0.2}, {})
-    assert cg.n_demos == 90 and cg.start_joint_range == 0.2
-    circle = task_class("circle").for_evaluation({"n_demos": 90}, {"circle_radii": [0.05], "rollouts": 3})
-    assert circle.eval_radii == (0.05,)
+    assert cg.n_demos == 45 and cg.start_joint_range == 0.2  # the start range shapes episodes, n_demos does not
+    stack = task_class("stack").for_evaluation({"retreat_starts": 0.5, "max_steps": 168}, {})
+    assert stack.retreat_starts == 0.0 and stack.max_steps == 168  # a training-data lever stays out
+    circle = task_class("circle").for_evaluation({"radii": (0.1, 0.2)}, {"circle_radii": [0.05], "rollouts": 3})
+    assert circle.eval_radii == (0.05,) and circle.radii == task_class("circle")().radii
 
 
 # Comparisons that branch on a task's name in another package's files still to be switched to the Task API

@@ -11,7 +11,6 @@ The same `Task.states` builds states for datasets, training feedback and rollout
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -125,6 +124,10 @@ class Task:
                         summarises the error; the sweep's error objective minimises its mean
         success_criterion  one line saying when an episode succeeds (for reports)
         block_size      edge (m) of the blocks the task handles, None without blocks (figures)
+        episode_options constructor options of the model task's dataset that also shape this
+                        task's evaluation episodes (start range, horizon): a model trained with
+                        them is evaluated with them (see for_evaluation); others (the number of
+                        demos, training-only start mixes) leave the evaluation as it is
     """
 
     name: str = ""
@@ -137,6 +140,7 @@ class Task:
     primary_metric: str = "final_distance"
     success_criterion: str = ""
     block_size: float | None = None
+    episode_options: tuple[str, ...] = ()
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -203,11 +207,9 @@ class Task:
     def for_evaluation(cls, data: Mapping[str, Any] | None = None,
                        eval_cfg: Mapping[str, Any] | None = None) -> Task:
         """This task as a model trained with the dataset options `data` (its model task's
-        constructor options) is evaluated on it: the options this class's constructor accepts
-        (so episodes come from the trained distribution), plus its own eval_options."""
-        params = inspect.signature(cls.__init__).parameters
-        takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-        options = {k: v for k, v in (data or {}).items() if takes_any or k in params}
+        constructor options) is evaluated on it: those of `episode_options` (so episodes come
+        from the trained start range and horizon), plus its own eval_options."""
+        options = {k: v for k, v in (data or {}).items() if k in cls.episode_options}
         return cls(**options, **cls.eval_options(eval_cfg or {}))
 
     def episode_metrics(self, results: list[dict[str, float]], episodes: list[Episode]) -> dict[str, float]:

@@ -86,6 +86,7 @@ class Circle(Task):
     model_task = "circle"
     step_seconds = STEP_SECONDS
     report_rank = 0
+    episode_options = ("steps",)
     panels = ("circles", "tip_paths")
     primary_metric = "radial_rmse"
     success_criterion = f"max radial error < {MAX_ERROR_PCT:g}% of r and >= {MIN_TURNS:g} of a turn drawn"

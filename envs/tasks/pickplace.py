@@ -145,6 +145,7 @@ class PickPlace(Task):
     model_task = "pick-place"
     step_seconds = STEP_SECONDS
     report_rank = 20
+    episode_options = ("min_steps", "max_steps")  # not retreat_starts: a training-data lever
     block_size = BLOCK_SIZE
     success_criterion = (f"block upright within {XY_TOL * 100:g} cm (xy) and {Z_TOL * 100:g} cm (z) of the goal, "
                          f"released, gripper clear")

@@ -73,6 +73,7 @@ class Reacher(Task):
     model_task = "reacher"
     step_seconds = STEP_SECONDS
     report_rank = 10
+    episode_options = ("start_joint_range", "min_steps", "max_steps")
     success_criterion = f"tool tip within {SUCCESS_RADIUS * 100:g} cm of the goal at the end (physics)"
     layout = StateLayout(
         phi_dim=3, psi_dim=3,
