@@ -217,3 +217,19 @@ def test_sweep_study_names_separate_different_settings():
     assert study_name(load_profile("smoke", ["train.iters=9"])) != base
     assert study_name(load_profile("smoke", ["sweep.space=[\"m\"]"])) != base
     assert study_name(load_profile("smoke", ["sweep.study_name=x"])) == "x"
+
+
+def test_cell_keys_and_hashes_match_the_recorded_ones():
+    """A re-run on an existing store skips cells whose config hash it finds FINISHED: the keys
+    and hashes of every profile (recorded on main 991f874, tests/data/cell_hashes.json) must not
+    move, or every cell of every existing study would be retrained."""
+    import json
+
+    recorded = json.loads((REPO / "tests" / "data" / "cell_hashes.json").read_text())
+    configs = {p: load_profile(p) for p in ("smoke", "quick", "results", "paper")}
+    configs["smoke+train.iters=7+per_task.reacher.data.n_demos=90+seeds=2"] = load_profile(
+        "smoke", ["train.iters=7", "per_task.reacher.data.n_demos=90"], seeds=2)
+    for name, cfg in configs.items():
+        got = {"study_name": cfg.resolved_study_name(), "study_hash": cfg.study_hash(),
+               "cells": {c.key: c.config_hash for c in build_cells(cfg)}}
+        assert got == recorded[name], name
