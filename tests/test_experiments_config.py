@@ -27,16 +27,12 @@ def test_profiles_exist_and_load():
 
 
 def test_paper_profile_has_the_paper_sizes():
-    from stm.config import ModelConfig, TrainConfig
-
     cfg = load_profile("paper")
-    m, t = cfg.stm_dicts("reacher")
-    assert (m["hidden_size"], m["num_layers"], m["mixtures"], t["iters"]) == (64, 3, 3, 5000)
-    assert (t["u"], t["v"]) == (5, 5)
-    m, t = cfg.stm_dicts("pick-place")
-    assert (m["hidden_size"], m["num_layers"], m["mixtures"], t["iters"]) == (128, 3, 20, 30000)
-    ModelConfig.from_dict({**ModelConfig().to_dict(), **m})
-    TrainConfig.from_dict({**TrainConfig().to_dict(), **t})
+    m, t = cfg.task_config("reacher").model, cfg.task_config("reacher").train
+    assert (m.hidden_size, m.num_layers, m.mixtures, t.iters) == (64, 3, 3, 5000)
+    assert (t.u, t.v) == (5, 5)
+    m, t = cfg.task_config("pick-place").model, cfg.task_config("pick-place").train
+    assert (m.hidden_size, m.num_layers, m.mixtures, t.iters) == (128, 3, 20, 30000)
 
 
 def test_overrides_apply_and_rename_the_study():
@@ -108,8 +104,8 @@ def test_cells_and_hashes():
     changed = build_cells(load_profile("smoke", ["train.iters=11"], seeds=2))
     assert not {c.config_hash for c in cells} & {c.config_hash for c in changed}
     by_variant = {c.variant: c for c in cells if c.seed == 0}
-    assert by_variant["lstm"].train["v"] == 0 and by_variant["lstm"].model["head"] == "deterministic"
-    assert by_variant["ac-lstm-mdn"].train["v"] > 0 and by_variant["ac-lstm-mdn"].model["head"] == "mdn"
+    assert by_variant["lstm"].train.v == 0 and by_variant["lstm"].model.head == "deterministic"
+    assert by_variant["ac-lstm-mdn"].train.v > 0 and by_variant["ac-lstm-mdn"].model.head == "mdn"
     assert cells[0].eval_tasks[0] == cells[0].task
 
 

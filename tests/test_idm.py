@@ -123,9 +123,10 @@ def test_short_idm_rollout_in_pybullet_stays_stable():
 
 
 def test_idm_study_smoke_end_to_end(tmp_path):
-    from stm.idm_study import idm_study, study_profile
+    from experiments.postprocess import load_config
+    from stm.idm_study import idm_study
 
-    res = idm_study(study_profile("smoke"), cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
+    res = idm_study(load_config("idm", "smoke", []).study, cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
     for cond in ("position", "sim", "real_sim_idm", "real_finetuned"):
         assert 0 <= res[f"{cond}/tip_rmse_vs_plan_m"] < 1.0
         assert res[f"{cond}/success_rate"] in (0.0, 0.25, 0.5, 0.75, 1.0)
@@ -133,4 +134,4 @@ def test_idm_study_smoke_end_to_end(tmp_path):
     assert res["latency_fast_ms"] > 0 and res["data_samples"] == 4 * 198
     assert all((tmp_path / "out" / n).exists() for n in ("idm_tracking.png", "idm_tracking.pdf", "idm_sim.pt"))
     with pytest.raises(ValueError, match="profile"):
-        study_profile("huge")
+        load_config("idm", "huge", [])
