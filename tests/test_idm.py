@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from envs.robot import NEUTRAL_Q
-from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, track_plan, train_idm
+from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, load_idm, save_idm, track_plan, train_idm
 from stm.idm_data import FEATURE_DIM, ExplorationConfig, IDMData, cache_path, collect, load_or_collect
 from stm.torque_sim import JointDynamics, TorqueWorld
 
@@ -45,6 +45,19 @@ def test_paper_sizes_are_the_defaults():
     linears = [m for m in model.trunk if isinstance(m, torch.nn.Linear)]
     assert [lin.out_features for lin in linears] == [256, 256, 256]
     assert model.head.out_features == 7 * 15 * 3
+
+
+def test_a_saved_idm_loads_with_its_config_and_standardisation(tmp_path, tiny_data):
+    """The study logs idm_sim.pt / idm_finetuned.pt: load_idm is how a user gets them back."""
+    model, _ = train_idm(tiny_data, IDMConfig(hidden=16, mixtures=2, epochs=1, batch_size=32, point="component_mean"))
+    save_idm(model, tmp_path / "idm.pt")
+    loaded = load_idm(tmp_path / "idm.pt")
+    assert loaded.cfg == model.cfg and not loaded.training
+    x = torch.randn(4, FEATURE_DIM)
+    with torch.inference_mode():
+        torch.testing.assert_close(loaded.torques(x), model.torques(x))
+    with pytest.raises(ValueError, match="point"):
+        IDMConfig(point="median")
 
 
 def test_nll_decreases_on_a_tiny_dataset(tiny_data):
