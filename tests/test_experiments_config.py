@@ -289,3 +289,12 @@ def test_set_applies_to_every_task_and_wins_over_the_profiles_per_task_values(ca
     assert (cfg.task_config("reacher").train.u, cfg.task_config("circle").train.u) == (2, 3)
     # the study name follows: a study where the override changed nothing stays the profile's
     assert load_profile("quick", ["train.log_every=10"]).resolved_study_name() == "quick"
+
+
+def test_a_variant_that_contradicts_the_schedule_fails_with_the_config():
+    """Checked when the config is resolved (the CLI no longer builds the cells twice to find out)."""
+    with pytest.raises(ConfigError, match=r"^train.v: variant 'ac-lstm-mdn' uses auto-conditioning"):
+        load_profile("smoke", ["train.v=0"])
+    with pytest.raises(ConfigError, match=r"^per_task.reacher.train.v: variant 'ac-lstm' "):
+        load_profile("quick", ["per_task.reacher.train.v=0"], variants=["ac-lstm"])
+    assert load_profile("smoke", ["train.v=0"], variants=["lstm"]).task_config("reacher").train.v == 0
