@@ -85,12 +85,15 @@ def message(err: ValidationError, prefix: str, allowed_fields: list[str]) -> str
     return f"{name}: {str(e['msg']).splitlines()[0]}"
 
 
-@functools.cache
 def signature_model(task: str) -> type:
     """A pydantic model of a task constructor's keyword arguments (name, type, default)."""
     from envs.tasks.base import TASKS
 
-    cls = TASKS[task]
+    return _options_model(TASKS[task])
+
+
+@functools.cache  # per class: a task registered again under the same name gets its own
+def _options_model(cls: type) -> type:
     hints = typing.get_type_hints(cls.__init__)
     params = [p for p in inspect.signature(cls.__init__).parameters.values() if p.name != "self"]
     fields = {p.name: (hints.get(p.name, Any), p.default if p.default is not inspect.Parameter.empty else ...)
