@@ -257,6 +257,7 @@ def from_dict(raw: dict[str, Any]) -> StudyConfig:
     raw = tuples(copy.deepcopy(raw))
     sections = {name: _section(name, raw.pop(name, None)) for name in ("eval", "sweep", "model", "train")}
     eval_cfg = validated(EvalConfig, sections["eval"], "eval")
+    _check_eval_options(eval_cfg)
     sweep_cfg = validated(SweepConfig, sections["sweep"], "sweep")
     stm = {name: _stm_values(name, sections[name], cls) for name, cls in STM_SECTIONS.items()}
     per_task = _per_task(_section("per_task", raw.pop("per_task", None)))
@@ -322,6 +323,17 @@ def _data_options(name: str, task: str, values: dict[str, Any]) -> dict[str, Any
     except (ValueError, TypeError) as e:
         raise ConfigError(f"{name}: {e}") from None
     return out
+
+
+def _check_eval_options(eval_cfg: EvalConfig) -> None:
+    """Each task checks the eval options it reads (Task.eval_options: the circle's radii)."""
+    from envs.tasks import task_class
+
+    for name in known_tasks():
+        try:
+            task_class(name).eval_options(dataclasses.asdict(eval_cfg))
+        except ValueError as exc:
+            raise ConfigError(str(exc).splitlines()[0]) from None
 
 
 def _check_variants(cfg: StudyConfig) -> None:

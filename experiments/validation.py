@@ -87,9 +87,9 @@ def message(err: ValidationError, prefix: str, allowed_fields: list[str]) -> str
 
 def signature_model(task: str) -> type:
     """A pydantic model of a task constructor's keyword arguments (name, type, default)."""
-    from envs.tasks.base import TASKS
+    from envs.tasks import task_class
 
-    return _options_model(TASKS[task])
+    return _options_model(task_class(task))
 
 
 @functools.cache  # per class: a task registered again under the same name gets its own

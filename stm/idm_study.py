@@ -30,6 +30,7 @@ from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from envs.kinematics import tip_position_np
 from envs.sim import Scene
+from envs.tasks.reacher import SUCCESS_RADIUS  # the reacher's success criterion
 from stm.config import STRICT, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
 from stm.figures import save_figure
 from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, Tracking, save_idm, track_plan, train_idm
@@ -38,9 +39,6 @@ from stm.smoothing import smooth_gd
 from stm.torque_sim import TorqueWorld
 
 log = logging.getLogger(__name__)
-
-SUCCESS_RADIUS = 0.05  # m, the reacher's success criterion
-
 
 @pydantic_dataclass(frozen=True, config=STRICT)
 class ExplorationSettings(ExplorationConfig):
