@@ -82,16 +82,17 @@ def _valid(npz: Path, meta_path: Path) -> bool:
 
 
 @pytest.fixture(autouse=True)
-def isolated(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    """Own working directory, dataset cache and store; clean environment for subprocesses."""
+def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch):
+    """Own working directory, dataset cache and store; clean environment for subprocesses.
+    Beside the test's tmp_path, not in it: a test may check that nothing was written there."""
     pool = _SESSION["pool"]
-    cache = tmp_path / "acrmdn-cache"
+    root = tmp_path_factory.mktemp("isolated")
+    cache, work = root / "acrmdn-cache", root / "work"
     cache.mkdir()
+    work.mkdir()
     for npz, meta in _entries(pool).values():
         shutil.copy2(npz, cache)
         shutil.copy2(meta, cache)
-    work = tmp_path / "work"
-    work.mkdir()
     for key in [k for k in os.environ if k.startswith(SCRUBBED_PREFIXES)]:
         monkeypatch.delenv(key)
     monkeypatch.setenv("ACRMDN_CACHE", str(cache))
