@@ -56,9 +56,16 @@ def app(session: nox.Session) -> None:
 
 @nox.session
 def tests(session: nox.Session) -> None:
-    """The test suite (benchmarks, integration and browser checks excluded)."""
+    """The test suite (benchmarks, integration and browser checks excluded). With no arguments:
+    coverage, failing under the floor in pyproject.toml. `nox -s tests -- -m "not slow"`: the fast lane (a -m here narrows the default one)."""
     _install(session, "[dev]")
-    session.run("pytest", "-m", "not bench and not integration and not browser", *session.posargs)
+    args, marks = list(session.posargs), "not bench and not integration and not browser"
+    if "-m" in args[:-1]:  # pytest keeps only the last -m: combine instead of replacing ours
+        i = args.index("-m")
+        marks = f"({marks}) and ({args.pop(i + 1)})"
+        args.pop(i)
+    cov = [] if session.posargs else ["--cov", "--cov-report=term"]
+    session.run("pytest", "-m", marks, *cov, *args)
 
 
 @nox.session

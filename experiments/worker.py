@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import random
 import tempfile
 import time
@@ -30,6 +31,11 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "model.pt"
 CHECKPOINT_DIR = "checkpoint"
+# Test hooks (never set in normal use): once a checkpoint is in the store, append "<run_id> <iteration>"
+# to the file named by SIGNAL_FILE_ENV, and with HOLD_ENV=1 then wait there until killed or interrupted,
+# so a fault test kills or interrupts a cell at a known point instead of racing its training.
+SIGNAL_FILE_ENV = "ACRMDN_TEST_SIGNAL_FILE"
+HOLD_ENV = "ACRMDN_TEST_HOLD"
 
 
 @dataclass
@@ -107,6 +113,17 @@ def run_cell(cell: Cell | dict[str, Any], uri: str, run_id: str, progress: bool 
                           seconds=time.perf_counter() - start, resumed_from=resumed_from)
 
 
+def _test_signal(run_id: str, iteration: int) -> None:
+    """The fault tests' hook (see SIGNAL_FILE_ENV); a no-op unless the variable is set."""
+    path = os.environ.get(SIGNAL_FILE_ENV)
+    if not path:
+        return
+    with open(path, "a") as f:  # one short O_APPEND write: lines from parallel workers do not interleave
+        f.write(f"{run_id} {iteration}\n")
+    while os.environ.get(HOLD_ENV) == "1":  # until SIGKILL, or Ctrl-C raising KeyboardInterrupt here
+        time.sleep(3600)
+
+
 def mark_killed(client: Client, run_ids: list[str]) -> None:
     """Interrupted cells: RUNNING runs become KILLED (a re-run resumes them from their checkpoint)."""
     for run_id in run_ids:
@@ -164,6 +181,7 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
         buffer.flush()
         client.log_artifact(run_id, str(path), CHECKPOINT_DIR)
         set_tags(client, run_id, {"checkpoint_iteration": iteration})
+        _test_signal(run_id, iteration)
 
     def on_validation(iteration: int, value: float) -> bool:
         buffer.add(iteration, {"val/metric": value})
