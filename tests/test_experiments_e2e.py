@@ -6,7 +6,6 @@ pruning that a re-run continues."""
 
 from __future__ import annotations
 
-import math
 import os
 import queue
 import re
@@ -20,29 +19,13 @@ import numpy as np
 import pytest
 from cli_helpers import cli_env, held_env, run_cli, wait_for_signals
 from mlflow.tracking import MlflowClient
-from PIL import Image
+from oracles import drawn_colours, wilson
 
 pytestmark = pytest.mark.slow
-_env, _cli = cli_env, run_cli  # older names, imported by tests/test_reports_results.py
-Z95 = 1.959963984540054  # two-sided 95% normal quantile
 
 
 def _children(client: MlflowClient, exp_id: str, parent_id: str):
     return client.search_runs([exp_id], f"tags.`mlflow.parentRunId` = '{parent_id}'")
-
-
-def _wilson(k: int, n: int) -> tuple[float, float]:
-    """The Wilson score interval from its closed form (an oracle independent of scipy)."""
-    p, z2 = k / n, Z95**2
-    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
-    half = Z95 / (1 + z2 / n) * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n))
-    return centre - half, centre + half
-
-
-def _drawn_colours(png: Path) -> int:
-    """Distinct colours in a figure: a blank or single-colour canvas has 1 or 2."""
-    with Image.open(png) as im:
-        return len(np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0))
 
 
 def test_ablation_smoke_end_to_end(smoke_store, tmp_path):
@@ -78,7 +61,7 @@ def test_ablation_smoke_end_to_end(smoke_store, tmp_path):
             assert metrics[f"{task}/n_rollouts"] == 4
             assert metrics[f"{task}/success_rate"] == pytest.approx(success.mean())
             assert metrics[f"{task}/final_distance_mean"] == pytest.approx(final.mean())
-            low, high = _wilson(int(success.sum()), 4)
+            low, high = wilson(int(success.sum()), 4)
             assert metrics[f"{task}/success_ci_low"] == pytest.approx(low, abs=1e-9)
             assert metrics[f"{task}/success_ci_high"] == pytest.approx(high, abs=1e-9)
         for key in ("time/train_seconds", "time/rollout_seconds", "time/generation_seconds_per_traj",
@@ -94,7 +77,7 @@ def test_ablation_smoke_end_to_end(smoke_store, tmp_path):
                 "figures/reacher-changing-goal_rollouts.png", "rollouts/reacher.npz",
                 "rollouts/reacher-changing-goal.npz", "rollouts/ik_timing.json"} <= artifacts
         png = Path(client.download_artifacts(run.info.run_id, "figures/reacher_rollouts.png", str(tmp_path)))
-        assert _drawn_colours(png) > 10  # paths, markers, axes and text: not a blank canvas
+        assert drawn_colours(png) > 10  # paths, markers, axes and text: not a blank canvas
     # the report's success table (experiments.stats.success_table): what n counts is in its columns
     out = smoke_store.stdout
     assert re.search(r"\| task +\| variant +\| success +\| per seed +\| Wilson 95% +\| seed-aware 95% +\| rollouts +"

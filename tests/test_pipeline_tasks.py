@@ -6,7 +6,6 @@ against the store."""
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,11 +15,10 @@ import pandas as pd
 import pytest
 from cli_helpers import run_cli
 from mlflow.tracking import MlflowClient
-from PIL import Image
+from oracles import drawn_colours, wilson
 
 pytestmark = pytest.mark.slow
 ROLLOUTS = 3
-Z95 = 1.959963984540054
 
 
 @dataclass(frozen=True)
@@ -58,16 +56,6 @@ def _rollouts(ts: TasksStore, task: str, eval_task: str, tmp: Path) -> dict[str,
         return {k: z[k] for k in z.files}
 
 
-def _wilson_high(k: int, n: int) -> float:
-    p, z2 = k / n, Z95**2
-    return (p + z2 / (2 * n) + Z95 * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n))) / (1 + z2 / n)
-
-
-def _colours(png: Path) -> int:
-    with Image.open(png) as im:
-        return len(np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0))
-
-
 def test_both_tasks_trained_and_evaluated_on_every_task_they_serve(tasks_store):
     assert set(tasks_store.cells) == {"circle", "pick-place"}
     for run in tasks_store.cells.values():
@@ -87,7 +75,7 @@ def test_logged_success_is_the_mean_of_the_logged_rollouts(tasks_store, tmp_path
     assert z["success"].shape == (ROLLOUTS,) and set(np.unique(z["success"])) <= {0.0, 1.0}
     assert metrics[f"{eval_task}/n_rollouts"] == ROLLOUTS
     assert metrics[f"{eval_task}/success_rate"] == pytest.approx(z["success"].mean())
-    assert metrics[f"{eval_task}/success_ci_high"] == pytest.approx(_wilson_high(int(z["success"].sum()), ROLLOUTS))
+    assert metrics[f"{eval_task}/success_ci_high"] == pytest.approx(wilson(int(z["success"].sum()), ROLLOUTS)[1])
     if eval_task != "circle":
         assert metrics[f"{eval_task}/final_distance_mean"] == pytest.approx(z["final_distance"].mean())
 
@@ -134,7 +122,7 @@ def test_report_tables_are_the_stores_numbers_and_its_figures_are_drawn(tasks_st
     for key in ("circle/success_rate", "circle/radial_rmse_mean", "circle/r7.5/radial_rmse"):
         assert every.loc[(key, "circle"), "mean"] == pytest.approx(circle[key]), key
     for fig in ("circles", "changing_goal", "tip_paths", "success_bars", "training_curves"):
-        assert _colours(tasks_store.report / f"{fig}.png") > 10, fig  # drawn, not a blank canvas
+        assert drawn_colours(tasks_store.report / f"{fig}.png") > 10, fig  # drawn, not a blank canvas
     # the only gaps are the reacher panels (no reacher cell in this study)
     gaps = dict(re.findall(r"<li>figure <b>(\w+)</b> panels without data: ([^<]*)</li>", tasks_store.index))
     assert set(gaps) == {"success_bars", "changing_goal"}, gaps
