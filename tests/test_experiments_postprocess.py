@@ -16,6 +16,7 @@ from experiments.postprocess import load_config
 
 pytestmark = pytest.mark.slow  # every test runs a study or the CLI
 
+
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     """Both smoke studies run once into one store (seconds each)."""
