@@ -57,7 +57,8 @@ def app(session: nox.Session) -> None:
 @nox.session
 def tests(session: nox.Session) -> None:
     """The test suite (benchmarks, integration and browser checks excluded). With no arguments:
-    coverage, failing under the floor in pyproject.toml. `nox -s tests -- -m "not slow"`: the fast lane (a -m here narrows the default one)."""
+    coverage, failing under the floor in pyproject.toml. `nox -s tests -- -m "not slow"`: the fast
+    lane (a -m here narrows the default one)."""
     _install(session, "[dev]")
     args, marks = list(session.posargs), "not bench and not integration and not browser"
     if "-m" in args[:-1]:  # pytest keeps only the last -m: combine instead of replacing ours

@@ -68,7 +68,7 @@ def test_a_toy_task_and_a_toy_variant_run_through_a_smoke_study(toy_module, monk
     runs = client.search_runs([exp.experiment_id])
     cells = {r.data.tags.get("variant"): r for r in runs if "mlflow.parentRunId" in r.data.tags}
     assert set(cells) == {"lstm", "toy-ac-lstm"}
-    for variant, run in cells.items():
+    for run in cells.values():
         assert run.info.status == "FINISHED"
         assert run.data.params["task"] == "toy-reach"
         assert run.data.metrics["toy-reach/n_rollouts"] == 2
