@@ -76,6 +76,13 @@ def select(mu: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return torch.gather(mu, -2, idx).squeeze(-2)
 
 
+def most_responsible(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor,
+                     point: torch.Tensor) -> torch.Tensor:
+    """Index (...,) of the component with the highest posterior responsibility for `point` (..., D):
+    argmax_i log alpha_i + log g_i(point)."""
+    return (F.log_softmax(logit_alpha, dim=-1) + component_log_prob(mu, log_sigma, point)).argmax(dim=-1)
+
+
 def sample(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor, *, temperature: float = 1.0,
            generator: torch.Generator | None = None) -> torch.Tensor:
     """Draw one point per mixture (..., D).

@@ -18,6 +18,10 @@ What an MDN feeds back (`feedback`; a deterministic head ignores it):
                      step of each segment (the episode start and each restart step), followed
                      for the whole segment: a rollout that commits to one mode of
                      multimodal demonstrations instead of switching or averaging between them
+  segment_track      drawn at the first step of each segment as segment_component, then at each
+                     step the component most responsible for the previous step's fed-back point:
+                     a head need not keep a mode in the same component slot over time, so
+                     following the mode by continuity instead of by slot
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from stm.model import STM, feedback_state, initial_state
 
 log = logging.getLogger(__name__)
 
-FEEDBACKS = ("component_mean", "mixture_mean", "sample", "sample_component", "segment_component")
+FEEDBACKS = ("component_mean", "mixture_mean", "sample", "sample_component", "segment_component", "segment_track")
 
 
 @dataclass
@@ -80,16 +84,20 @@ def _restart_mask(episodes: list[Episode], horizon: int) -> torch.Tensor:
 
 
 def _feedback_point(model: STM, raw: torch.Tensor, feedback: str, chosen: torch.Tensor, temperature: float,
-                    gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """(normalised next state (B, D), component index (B,) fed back, -1 where none or a blend)."""
+                    gen: torch.Generator, prev: torch.Tensor | None = None,
+                    fresh: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(normalised next state (B, D), component index (B,) fed back, -1 where none or a blend).
+    segment_track: prev (B, D) is the previous step's point, fresh (B,) where a segment starts."""
     none = torch.full(raw.shape[:1], -1, dtype=torch.long)
     if not model.is_mdn or feedback in ("mixture_mean", "sample"):
         return model.predict(raw, feedback, temperature=temperature, generator=gen), none
     if feedback == "component_mean":  # model.predict's path, unchanged; the index only for the record
         return model.predict(raw, feedback), raw[:, : model.config.mixtures].argmax(dim=-1)
-    logit_alpha, mu, _ = model.mixture(raw)
+    logit_alpha, mu, log_sigma = model.mixture(raw)
     if feedback == "sample_component":
         chosen = mdn.sample_component(logit_alpha, temperature=temperature, generator=gen)
+    if feedback == "segment_track" and prev is not None:
+        chosen = torch.where(fresh, chosen, mdn.most_responsible(logit_alpha, mu, log_sigma, prev))
     return mdn.select(mu, chosen), chosen
 
 
@@ -128,8 +136,9 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     grip_idx = task.layout.grip.start if task.layout.gripper else None
     restarts = _restart_mask(episodes, H)
     restarts[:, 0] = True  # every episode starts a segment
-    commit = feedback == "segment_component" and model.is_mdn
+    commit = feedback in ("segment_component", "segment_track") and model.is_mdn
     chosen = torch.zeros(B, dtype=torch.long)
+    z = None  # the previous step's fed-back point (normalised)
     for t in range(H):
         if t > 0 and restarts[:, t].any():
             rows = restarts[:, t]
@@ -143,7 +152,8 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
             rows = restarts[:, t]
             logit_alpha = model.mixture(raw[rows, 0])[0]
             chosen[rows] = mdn.sample_component(logit_alpha, temperature=temperature, generator=gen)
-        z, comps[:, t] = _feedback_point(model, raw[:, 0], feedback, chosen, temperature, gen)
+        z, comps[:, t] = _feedback_point(model, raw[:, 0], feedback, chosen, temperature, gen,
+                                         prev=z, fresh=restarts[:, t])
         pred = model.denormalize(z)
         s, q = feedback_state(task, kin, pred, q, psi[:, t + 1], phi_mode)
         qs[:, t + 1] = q

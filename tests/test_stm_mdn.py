@@ -98,3 +98,13 @@ def test_select_and_sample_component_point_return_a_component_mean():
     logits = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     x = mdn.point(logits, mu, torch.zeros(2, 3), "sample_component", generator=torch.Generator().manual_seed(0))
     assert all(any(torch.equal(x[b], mu[b, k]) for k in range(3)) for b in range(2))  # a mean, no noise added
+
+
+def test_most_responsible_weighs_distance_sigma_and_weight():
+    mu = torch.tensor([[[0.0, 0.0], [1.0, 0.0]]]).expand(3, 2, 2)
+    logits = torch.log(torch.tensor([[0.5, 0.5], [0.5, 0.5], [0.999, 0.001]]))
+    log_sigma = torch.log(torch.tensor([[0.1, 0.1], [1.0, 0.1], [0.3, 0.3]]))
+    x = torch.tensor([[0.8, 0.0], [0.6, 0.0], [0.6, 0.0]])
+    # the nearest; a wide component can explain a point better than a narrow nearer one; a heavy weight
+    # can outvote distance
+    assert mdn.most_responsible(logits, mu, log_sigma, x).tolist() == [1, 0, 0]

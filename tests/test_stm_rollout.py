@@ -140,3 +140,14 @@ def test_unknown_feedback_and_bad_temperature_are_errors(overfit):
         generate(model, task, eps, feedback="median")
     with pytest.raises(ValueError, match="temperature"):
         generate(model, task, eps, feedback="segment_component", temperature=0.0)
+
+
+def test_segment_track_keeps_the_drawn_mode_by_continuity():
+    task = ToyReach(max_steps=10)
+    model = _two_mode_model(task)
+    eps = task.episodes(24, seed=0)
+    committed = generate(model, task, eps, feedback="segment_component", seed=5)
+    tracked = generate(model, task, eps, feedback="segment_track", seed=5)
+    # the components' means never move, so the most responsible component is the one drawn at the start
+    assert np.array_equal(tracked.components, committed.components)
+    assert np.array_equal(tracked.q, committed.q)
