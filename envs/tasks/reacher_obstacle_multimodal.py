@@ -131,6 +131,11 @@ class ReacherObstacleMultimodal(Reacher):
     model_task = "reacher-obstacle-multimodal"
     description = "multimodal: reacher around a pillar, expert passes left or right at random"
     modes = MODES
+    label = "reacher around a pillar (multimodal)"
+    report_rank = 20
+    episode_options = ("min_steps", "max_steps")  # the constructor has no start range
+    success_criterion = (f"tool tip within {SUCCESS_RADIUS * 100:g} cm of the goal at the end without touching "
+                         "the pillar (physics)")
 
     def __init__(self, n_demos: int = 60, min_steps: int = 60, max_steps: int = 80):
         super().__init__(n_demos=n_demos, min_steps=min_steps, max_steps=max_steps)

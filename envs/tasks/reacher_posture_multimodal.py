@@ -106,6 +106,11 @@ class ReacherPostureMultimodal(Reacher):
     model_task = "reacher-posture-multimodal"
     description = "multimodal: reacher ending in one of two arm postures (j2 swung +- 0.9 rad) at random"
     modes = MODES
+    label = "reacher in two postures (multimodal)"
+    report_rank = 21
+    episode_options = ("min_steps", "max_steps")  # the constructor has no start range
+    success_criterion = (f"tool tip within {SUCCESS_RADIUS * 100:g} cm of the goal at the end, the arm in one of "
+                         "the two postures, not between them (physics)")
 
     def __init__(self, n_demos: int = 60, min_steps: int = 50, max_steps: int = 70):
         super().__init__(n_demos=n_demos, min_steps=min_steps, max_steps=max_steps)
