@@ -135,7 +135,7 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     try:
         if workers == 1:
             for cell, run_id in todo:
-                res = run_cell(cell.to_dict(), uri, run_id, progress=interactive, log_level=level,
+                res = run_cell(cell, uri, run_id, progress=interactive, log_level=level,
                                threads=TORCH_THREADS)
                 _record(outcome, res, bar, len(todo), interactive)
         else:
@@ -183,7 +183,7 @@ def _run_parallel(todo, uri, workers, outcome, bar, level, interactive) -> None:
     try:
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool, _stop_on_interrupt(pool):
             for cell, run_id in todo:
-                fut = pool.submit(run_cell, cell.to_dict(), uri, run_id, False, level, TORCH_THREADS)
+                fut = pool.submit(run_cell, cell, uri, run_id, False, level, TORCH_THREADS)
                 pending[fut] = (cell, run_id)
             for fut in as_completed(pending):
                 cell, run_id = pending[fut]

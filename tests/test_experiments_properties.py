@@ -14,14 +14,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from experiments.config import FEEDBACK_MODES, OBJECTIVES, SAMPLERS, ConfigError, parse_override
-from stm.config import HEADS, PHI_MODES
+from experiments.config import OBJECTIVES, SAMPLERS, ConfigError, parse_override
+from stm.config import FEEDBACKS, HEADS, PHI_MODES
 
 # integer fields and the smallest allowed value
 INT_FIELDS = {"train.iters": 0, "train.batch_size": 1, "train.u": 1, "train.v": 0, "train.val_episodes": 1,
               "model.hidden_size": 1, "model.num_layers": 1, "model.mixtures": 1, "eval.rollouts": 1,
               "eval.figures": 0, "seeds": 1, "workers": 0, "sweep.trials": 1, "sweep.heartbeat": 1}
-CHOICES = {"train.feedback": FEEDBACK_MODES, "eval.feedback": FEEDBACK_MODES, "model.head": HEADS,
+CHOICES = {"train.feedback": FEEDBACKS, "eval.feedback": FEEDBACKS, "model.head": HEADS,
            "train.phi_mode": PHI_MODES, "sweep.sampler": SAMPLERS, "sweep.objective": OBJECTIVES}
 SECTIONS = ("train", "model", "eval", "sweep")
 KNOWN = set(INT_FIELDS) | set(CHOICES)
@@ -98,6 +98,7 @@ def _assert_rejected(argv: list[str], field: str, cwd: Path) -> None:
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(bad=st.one_of(too_small, not_an_int, not_a_choice, unknown_field),
        command=st.sampled_from(["ablation", "sweep"]))
+@pytest.mark.slow
 def test_rejected_set_values_exit_2_with_one_line_naming_the_field(store_dir, monkeypatch, bad, command):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     override, field = bad
@@ -118,6 +119,7 @@ cli_bad = st.one_of(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(bad=cli_bad)
 def test_rejected_cli_arguments_exit_2_with_one_line_naming_the_field(store_dir, monkeypatch, bad):
@@ -134,7 +136,7 @@ accepted = st.one_of(
     st.tuples(st.sampled_from(["train.lr", "model.sigma_min"]),
               st.floats(min_value=1e-12, max_value=1e3, allow_nan=False, allow_infinity=False)),
     st.tuples(st.just("train.grad_clip"), st.floats(min_value=0.0, max_value=1e6, allow_nan=False)),
-    st.tuples(st.just("eval.feedback"), st.sampled_from(FEEDBACK_MODES)),
+    st.tuples(st.just("eval.feedback"), st.sampled_from(FEEDBACKS)),
 )
 
 
@@ -147,6 +149,7 @@ def mlflow_run(tmp_path_factory):
     return client, get_or_create_experiment(client, "ablation")
 
 
+@pytest.mark.slow
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(item=accepted)
 def test_accepted_values_round_trip_through_the_logged_params(mlflow_run, item):

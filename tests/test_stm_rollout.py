@@ -74,8 +74,17 @@ def test_sampling_is_seeded_and_evaluate_runs_physics(overfit):
     a = generate(model, task, eps, feedback="sample", seed=1)
     b = generate(model, task, eps, feedback="sample", seed=1)
     assert np.array_equal(a.q, b.q)
-    results = evaluate(task, a, eps)
-    assert len(results) == 2 and all(r["success"] in (0.0, 1.0) and r["final_distance"] >= 0 for r in results)
+    # physics against the kinematics: the overfit model reaches its demo's goal, not another episode's
+    demo, other = demo_episodes(demos, 1)[0], eps[0]
+    other = Episode(q0=demo.q0, psi=other.psi[: demo.horizon + 1], horizon=demo.horizon)
+    both = [demo, other]
+    ro = generate(model, task, both)
+    results = evaluate(task, ro, both)
+    fk_distance = [np.linalg.norm(tip_position_np(ro.q[i, -1]) - ep.psi[-1]) for i, ep in enumerate(both)]
+    assert fk_distance[0] < 0.02 < 0.1 < fk_distance[1], fk_distance
+    assert [r["success"] for r in results] == [1.0, 0.0]
+    for r, d in zip(results, fk_distance, strict=True):
+        assert r["final_distance"] == pytest.approx(d, abs=0.02), (r, d)  # position control tracks the plan
     with pytest.raises(ValueError, match="rollouts for"):
         evaluate(task, a, eps[:1])
 
