@@ -37,7 +37,7 @@ class _Permanent(Exception):
 
 
 def _probe_sqlite(path: Path) -> None:
-    folder = path.parent
+    folder = path.absolute().parent
     if not folder.is_dir():
         raise _Permanent(f"folder {folder} does not exist; create it or set MLFLOW_TRACKING_URI")
     try:  # the db, its journal and the artifacts are created in this folder

@@ -86,11 +86,13 @@ class Client:
 
     def __init__(self, uri: str | None = None):
         self.uri = uri or tracking_uri()
-        self._client = MlflowClient(tracking_uri=self.uri)
         db = sqlite_path(self.uri)
-        if db is not None:  # the first call creates (migrates) the schema: one process at a time
-            with schema_lock(db):
-                with_retries(self._client.search_experiments)(max_results=1)
+        if db is None:
+            self._client = MlflowClient(tracking_uri=self.uri)
+            return
+        with schema_lock(db):  # opening a fresh store creates (migrates) its schema: one process at a time
+            self._client = with_retries(MlflowClient)(tracking_uri=self.uri)
+            with_retries(self._client.search_experiments)(max_results=1)
 
     def __getattr__(self, name: str) -> Any:
         attr = getattr(self._client, name)
