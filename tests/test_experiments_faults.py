@@ -246,7 +246,7 @@ def test_sweep_that_recovers_from_a_killed_trial_exits_0_with_its_parent_finishe
     from optuna.trial import TrialState
 
     args = [sys.executable, "-m", "experiments", "sweep", "--profile", "smoke", "--workers", "1", "--trials", "1",
-            "--study-name", "rec", "--set", "train.iters=3000", "--set", "train.val_every=10"]
+            "--study-name", "rec", "--set", "train.iters=400", "--set", "train.val_every=20"]
     journal = tmp_path / "optuna.journal"
     proc = subprocess.Popen(args, cwd=tmp_path, env=_env(tmp_path), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
