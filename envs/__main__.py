@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from envs.datasets import entry_paths, load_demos
-from envs.tasks import TASKS, Task, UnknownTaskError, get_task
+from envs.tasks import Task, UnknownTaskError, get_task, task_class, task_names
 
 
 def _describe(task: Task, seed: int, cache_dir: Path | None) -> dict[str, Any]:
@@ -80,12 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if args.command == "list":
-        import envs.tasks  # noqa: F401  (registers the tasks)
-
-        for name in sorted(TASKS):
-            cls = TASKS[name]
+        for name in sorted(task_names()):
+            cls = task_class(name)
             note = "" if cls.model_task in ("", name) else f"  (evaluation; model trained on {cls.model_task})"
-            print(f"{name}{note}")
+            doc = (cls.__dict__.get("__doc__") or "").strip().splitlines()
+            print(f"{name}{note}" + (f"  - {doc[0]}" if doc else ""))
         return 0
     try:
         task = get_task(args.task)
@@ -101,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     from envs.render import render_task
 
-    own_data = task.model_task in ("", task.name) or not hasattr(task, "expert_rollout")
+    own_data = task.model_task in ("", task.name)  # else: the expert on a few of its evaluation episodes
     demos = load_demos(task, seed=args.seed, cache_dir=args.cache_dir) if own_data else None
     for path in render_task(task, demos, args.out):
         print(path)

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from envs.fileio import atomic_write_bytes, atomic_write_text
 from envs.tasks.base import Demos, Task
 
 log = logging.getLogger(__name__)
@@ -74,9 +75,9 @@ def entry_paths(task: Task, seed: int, cache_dir: Path | None = None) -> tuple[P
 def _dataset_task(task: Task) -> Task:
     """The task whose demonstrations `task` uses: itself, or its model_task for evaluation-only tasks."""
     if task.model_task and task.model_task != task.name:
-        from envs.tasks.base import TASKS
+        from envs.tasks.registry import task_class
 
-        return _model_task_of(task, TASKS)
+        return _model_task_of(task, task_class(task.model_task))
     return task
 
 
@@ -115,12 +116,6 @@ def _read(npz_path: Path, meta_path: Path, task_name: str, seed: int, chash: str
     if arrays_hash(arrays) != meta.get("arrays_sha256"):
         raise _Invalid("array bytes do not match their recorded hash")
     return Demos(**arrays, meta=meta)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
 
 
 def _generate(task: Task, seed: int, chash: str) -> tuple[Demos, dict[str, np.ndarray], dict[str, Any]]:
@@ -168,16 +163,15 @@ def load_demos(task: Task, seed: int = 0, cache_dir: Path | None = None) -> Demo
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         meta_path.unlink(missing_ok=True)  # the entry is invalid until both files are written
-        _atomic_write(npz_path, buf.getvalue())
-        _atomic_write(meta_path, json.dumps(meta, indent=1, default=str).encode())
+        atomic_write_bytes(npz_path, buf.getvalue())
+        atomic_write_text(meta_path, json.dumps(meta, indent=1, default=str))
         log.info("generated %d %s demos in %.1f s -> %s", len(demos), task.name, meta["generation_seconds"], npz_path)
         return demos
 
 
-def _model_task_of(task: Task, registry: dict[str, type[Task]]) -> Task:
-    """The training task behind an evaluation-only task, with the same settings where it
-    is a subclass of it (e.g. reacher-changing-goal -> reacher)."""
-    cls = registry[task.model_task]
+def _model_task_of(task: Task, cls: type[Task]) -> Task:
+    """The training task (class `cls`) behind an evaluation-only task, with the same settings
+    where it is a subclass of it (e.g. reacher-changing-goal -> reacher)."""
     if isinstance(task, cls):
         twin = cls.__new__(cls)
         twin.__dict__.update(task.__dict__)

@@ -53,8 +53,7 @@ def _paths_from_demos(demos: Demos) -> tuple[list[np.ndarray], list[np.ndarray]]
 def _paths_from_episodes(task: Task, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
     paths, psis = [], []
     for ep in task.episodes(n, seed=0):
-        out = task.expert_rollout(ep)
-        q = out[0] if isinstance(out, tuple) else out
+        q, _ = task.expert_episode(ep)
         paths.append(tip_position_np(q))
         psis.append(ep.psi)
     return paths, psis
@@ -70,7 +69,7 @@ def render_task(task: Task, demos: Demos | None, out: Path, n_episodes: int = 6)
         paths, psis = _paths_from_episodes(task, n_episodes)
         what = f"expert on {len(paths)} evaluation episodes"
     total = len(paths)
-    block = _block_size(task)
+    block = task.block_size
     limit = MAX_PATHS_WITH_BLOCKS if block else MAX_PATHS
     shown = np.linspace(0, total - 1, min(total, limit)).round().astype(int)
     if len(shown) < total:
@@ -99,18 +98,15 @@ def render_task(task: Task, demos: Demos | None, out: Path, n_episodes: int = 6)
                 _draw_goal_blocks(ax, goals, block, c)
         pts += [p, goals]
     if block:
-        from envs.blocks import PICK_XY
-
-        _draw_cube(ax, (*PICK_XY, TABLE_TOP_Z), block, "tab:red", alpha=0.6)
-        ax.scatter([], [], color="tab:red", marker="s", s=40, label="block at the pick position")
+        for bottom in task.scene_blocks():
+            _draw_cube(ax, bottom, block, "tab:red", alpha=0.6)
+            pts.append(np.array([bottom]))
+        ax.scatter([], [], color="tab:red", marker="s", s=40, label="block at the start")
         ax.scatter([], [], color="lightgrey", edgecolor="k", marker="s", s=40, label="placed block / support")
-        pts.append(np.array([[*PICK_XY, TABLE_TOP_Z]]))
-    if task.name == "circle":
-        from envs.tasks.circle import CENTRE
-
-        ax.scatter(*CENTRE, color="k", marker="+", s=60, label="centre")
-        radii = sorted({float(p[0, 0]) for p in psis})
-        what += f", radii {100 * radii[0]:g}-{100 * radii[-1]:g} cm"
+    for label, point in task.landmarks().items():
+        ax.scatter(*point, color="k", marker="+", s=60, label=label)
+    note = task.describe_paths(psis)
+    what += f", {note}" if note else ""
     ax.scatter([], [], color="grey", s=12, marker="o", label="start")
     pts = np.concatenate([p.reshape(-1, 3) for p in pts[1:]])
     lo, hi = pts.min(axis=0) - 0.03, pts.max(axis=0) + 0.03
@@ -134,14 +130,6 @@ def render_task(task: Task, demos: Demos | None, out: Path, n_episodes: int = 6)
     fig.savefig(pdf)
     plt.close(fig)
     return [out, pdf]
-
-
-def _block_size(task: Task) -> float | None:
-    if not task.layout.gripper:
-        return None
-    from envs.blocks import BLOCK_SIZE
-
-    return BLOCK_SIZE
 
 
 def _draw_goal_blocks(ax, goals: np.ndarray, size: float, color) -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import shlex
 import sys
@@ -250,33 +249,17 @@ def _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, h
 
 
 def success_table(client: Client, experiment_id: str, parent_id: str) -> str:
-    """Markdown table: rows = variants, columns = evaluated tasks, mean success over seeds
-    (with the number of seeds) from the FINISHED child runs of the study."""
-    rows: dict[str, dict[str, list[float]]] = {}
-    columns: list[str] = []
-    for run in child_runs(client, experiment_id, parent_id):
-        if run.info.status != "FINISHED":
-            continue
-        variant = run.data.tags.get("variant", "?")
-        for key, value in run.data.metrics.items():
-            if key.endswith("/success_rate") and key.count("/") == 1:
-                task = key.split("/")[0]
-                if task not in columns:
-                    columns.append(task)
-                rows.setdefault(variant, {}).setdefault(task, []).append(value)
-    if not rows:
-        return "(no finished cells)"
+    """experiments.stats.success_table (the report's success table) over the FINISHED child runs, as Markdown."""
+    from experiments.stats import eval_rows, success_cells
+    from experiments.stats import success_table as table
     from stm.registry import VARIANTS
 
-    order = [v for v in VARIANTS if v in rows] + sorted(set(rows) - set(VARIANTS))
-    lines = ["| variant | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
-    for v in order:
-        cells = []
-        for t in columns:
-            vals = [x for x in rows[v].get(t, []) if not math.isnan(x)]
-            cells.append(f"{100 * sum(vals) / len(vals):.0f}% (n={len(vals)} seeds)" if vals else "-")
-        lines.append(f"| {v} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    evals = eval_rows(child_runs(client, experiment_id, parent_id))
+    if evals.empty:
+        return "(no finished cells)"
+    seen = list(dict.fromkeys(evals["variant"]))
+    order = [v for v in VARIANTS if v in seen] + sorted(set(seen) - set(VARIANTS))
+    return table(success_cells(evals, order)).to_markdown(index=False, disable_numparse=True)
 
 
 def command_line() -> str:
@@ -290,7 +273,8 @@ def study_note(outcome: StudyOutcome, client: Client, kind: str) -> str:
     """The parent run's description (Markdown): headline table, command, report."""
     lines = [f"**{kind} study `{outcome.study_name}`**: {len(outcome.results)} cell(s) run, "
              f"{len(outcome.skipped)} skipped (already FINISHED), {len(outcome.failures)} failed, "
-             f"{outcome.seconds:.0f} s.", "", "Success rate, mean over seeds (n = number of seeds):", "",
+             f"{outcome.seconds:.0f} s.", "",
+             "Success rate (mean over seeds; rollouts = evaluation episodes pooled over seeds):", "",
              success_table(client, outcome.experiment_id, outcome.parent_run_id), ""]
     if command_line():
         lines += ["Command:", "", f"    {command_line()}", ""]
@@ -302,7 +286,8 @@ def study_note(outcome: StudyOutcome, client: Client, kind: str) -> str:
 def summary_text(outcome: StudyOutcome, client: Client) -> str:
     lines = [f"study {outcome.study_name!r}: {len(outcome.results)} cell(s) run, {len(outcome.skipped)} skipped "
              f"(already FINISHED), {len(outcome.failures)} failed, {outcome.seconds:.0f}s",
-             "success rate over seeds (mean):", success_table(client, outcome.experiment_id, outcome.parent_run_id)]
+             "success rate (mean over seeds; rollouts = evaluation episodes pooled over seeds):",
+             success_table(client, outcome.experiment_id, outcome.parent_run_id)]
     if outcome.failures:
         lines.append("FAILED cells:")
         lines += [f"  {r.key} (run {r.run_id}): {r.error}" for r in outcome.failures]

@@ -161,7 +161,11 @@ def claimed_cell(cell_dict: dict, uri: str, run_id: str, progress: bool, level: 
 
 def log_headline(client: Client, run_id: str, task: str, metrics: dict[str, float]) -> None:
     """The cell's main results under names without a task prefix, so that the MLflow runs table
-    shows them in one column for every cell: its training task's success rate and distance."""
-    names = {"success_rate": f"{task}/success_rate", "final_distance_mean": f"{task}/final_distance_mean",
+    shows them in one column for every cell: its training task's success rate and the mean of
+    the task's primary error metric."""
+    from envs.tasks import TASKS
+
+    primary = f"{TASKS[task].primary_metric}_mean" if task in TASKS else "final_distance_mean"
+    names = {"success_rate": f"{task}/success_rate", primary: f"{task}/{primary}",
              "train_seconds": "time/train_seconds"}
     log_metrics(client, run_id, {k: metrics[v] for k, v in names.items() if v in metrics})

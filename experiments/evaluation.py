@@ -1,15 +1,19 @@
 """Evaluate one trained model on every task it serves: closed-loop generation with
 `stm.rollout.generate`, execution in pybullet with `stm.rollout.evaluate`, and the
-metrics of the MLflow schema (success with its Wilson interval, final distance, circle
-radius errors per radius, timings). Each call builds its own tasks and pybullet scenes,
-so it is safe in parallel worker processes."""
+metrics of the MLflow schema (success with its Wilson interval, every per-rollout metric's
+mean, the task's own breakdowns, timings). Each call builds its own tasks and pybullet
+scenes, so it is safe in parallel worker processes.
+
+Protocol: each training seed is evaluated on its own episodes (`episode_seed`), and a model
+trained to feed back samples of its mixture is evaluated sampling (`rollout_feedback`).
+Everything task-specific (episodes, metrics, the expert) comes from the task object."""
 
 from __future__ import annotations
 
-import inspect
 import logging
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,24 +33,23 @@ class TaskEvaluation:
     results: list[dict[str, float]]
     metrics: dict[str, float] = field(default_factory=dict)
     timing: dict[str, float] = field(default_factory=dict)
+    seed: int = 0  # the training seed of the evaluated model
+    episode_seed: int = 0  # the seed the episodes were drawn with (episode_seed(eval seed, seed))
+    feedback: str = ""  # what the rollouts fed back
 
 
-def circle_episodes(task, n: int, seed: int, radii: list[float]) -> list:
-    """n circle episodes spread evenly over the given radii (m).
+def episode_seed(eval_seed: int, train_seed: int) -> int:
+    """The episodes' seed for a model trained with `train_seed`: every training seed gets its
+    own episodes (independent draws), and seed 0 keeps the eval seed's. The demonstrations are
+    drawn with the dataset seed (0), far below the eval seed (10,000 by default), so no
+    evaluation episode repeats a training demonstration."""
+    return int(eval_seed) + int(train_seed)
 
-    Adapter over the circle task's signature: `episodes(n, seed, radii=...)`, else one call
-    per radius with `radius=`, else the task's own default radii."""
-    params = inspect.signature(task.episodes).parameters
-    if "radii" in params:
-        return task.episodes(n, seed, radii=list(radii))
-    if "radius" in params:
-        per = [n // len(radii) + (i < n % len(radii)) for i in range(len(radii))]
-        eps = []
-        for i, (r, k) in enumerate(zip(radii, per, strict=True)):
-            if k:
-                eps += task.episodes(k, seed + 1000 * i, radius=r)
-        return eps
-    return task.episodes(n, seed)
+
+def rollout_feedback(eval_feedback: str, train_feedback: str | None) -> str:
+    """What the rollouts feed back: a model trained on samples of its mixture is evaluated
+    sampling too; otherwise the eval section's choice (deterministic heads ignore it)."""
+    return "sample" if train_feedback == "sample" else eval_feedback
 
 
 def _mean(values: list[float]) -> float:
@@ -54,7 +57,10 @@ def _mean(values: list[float]) -> float:
     return float(np.mean(vals)) if vals else math.nan
 
 
-def task_metrics(name: str, results: list[dict[str, float]], episodes: list) -> dict[str, float]:
+def task_metrics(task, results: list[dict[str, float]], episodes: list) -> dict[str, float]:
+    """"<task>/..." metrics of one evaluation: n_rollouts, the success summary, every per-rollout
+    metric's mean and the task's own breakdowns (Task.episode_metrics)."""
+    name = task.name
     out: dict[str, float] = {f"{name}/n_rollouts": float(len(results))}
     if results and "success" in results[0]:
         for k, v in success_summary([r["success"] for r in results]).items():
@@ -62,40 +68,36 @@ def task_metrics(name: str, results: list[dict[str, float]], episodes: list) -> 
     keys = sorted({k for r in results for k in r} - {"success"})
     for k in keys:  # every task metric's mean, e.g. final_distance_mean
         out[f"{name}/{k}_mean"] = _mean([r.get(k, math.nan) for r in results])
-    radii = [ep.info.get("radius") for ep in episodes]
-    if any(r is not None for r in radii):
-        for r in sorted({r for r in radii if r is not None}):
-            group = [res for res, rr in zip(results, radii, strict=True) if rr == r]
-            tag = f"{name}/r{round(r * 100, 1):g}"
-            for k in ("radial_rmse", "max_radial_error_pct", "closure", "success"):
-                if group and k in group[0]:
-                    out[f"{tag}/{k}"] = _mean([g[k] for g in group])
-            out[f"{tag}/n_rollouts"] = float(len(group))
+    for k, v in task.episode_metrics(results, episodes).items():
+        out[f"{name}/{k}"] = v
     return out
 
 
-def evaluate_model(model, eval_tasks: list[str], eval_cfg: dict[str, Any], *, seed: int = 0,
-                   phi_mode: str | None = None, timings: bool = True) -> tuple[dict[str, float], list[TaskEvaluation]]:
-    """Metrics over every evaluation task plus per-task details (for figures). `timings`: also
-    time one-at-a-time generation and the IK expert (the compute-time comparison)."""
-    from envs.tasks import get_task
+def evaluate_model(model, eval_tasks: list[str], eval_cfg: Mapping[str, Any], *, seed: int = 0,
+                   phi_mode: str | None = None, timings: bool = True, data: Mapping[str, Any] | None = None,
+                   train_feedback: str | None = None, temperature: float = 1.0
+                   ) -> tuple[dict[str, float], list[TaskEvaluation]]:
+    """Metrics over every evaluation task plus per-task details (for figures).
+
+    seed: the model's training seed (picks its episodes and seeds sampling); data: the training
+    task's dataset options (evaluation tasks take those they accept, so episodes come from the
+    trained distribution); train_feedback, temperature: the training config's (see
+    rollout_feedback); timings: also time one-at-a-time generation and the IK expert."""
+    from envs.tasks import task_class
     from stm.rollout import evaluate, generate
 
     metrics: dict[str, float] = {}
     details = []
     gen_seconds = phys_seconds = 0.0
     n_traj = 0
-    gen_kwargs: dict[str, Any] = {"feedback": eval_cfg["feedback"], "seed": seed}
-    if phi_mode is not None and "phi_mode" in inspect.signature(generate).parameters:
-        gen_kwargs["phi_mode"] = phi_mode
+    feedback = rollout_feedback(eval_cfg["feedback"], train_feedback)
+    gen_kwargs: dict[str, Any] = {"feedback": feedback, "seed": seed, "phi_mode": phi_mode}
+    if feedback == "sample":
+        gen_kwargs["temperature"] = temperature
+    ep_seed = episode_seed(int(eval_cfg["seed"]), seed)
     for name in eval_tasks:
-        task = get_task(name)
-        n = int(eval_cfg["rollouts"])
-        if name == "circle":
-            radii = [*eval_cfg["circle_radii"], *eval_cfg["circle_unseen_radii"]]
-            episodes = circle_episodes(task, n, int(eval_cfg["seed"]), radii)
-        else:
-            episodes = task.episodes(n, int(eval_cfg["seed"]))
+        task = task_class(name).for_evaluation(data, eval_cfg)
+        episodes = task.episodes(int(eval_cfg["rollouts"]), ep_seed)
         rollouts = generate(model, task, episodes, **gen_kwargs)
         start = time.perf_counter()
         results = evaluate(task, rollouts, episodes)
@@ -103,9 +105,11 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: dict[str, Any], *, se
         gen_seconds += rollouts.seconds
         phys_seconds += phys
         n_traj += len(episodes)
-        m = task_metrics(name, results, episodes)
+        m = task_metrics(task, results, episodes)
+        m[f"{name}/episode_seed"] = float(ep_seed)
         metrics.update(m)
-        detail = TaskEvaluation(name, episodes, rollouts.q, results, m)
+        detail = TaskEvaluation(name, episodes, rollouts.q, results, m, seed=seed, episode_seed=ep_seed,
+                                feedback=feedback)
         if timings:
             detail.timing = _timing(model, task, episodes, rollouts, gen_kwargs)
         details.append(detail)
@@ -143,37 +147,19 @@ def _timing(model, task, episodes: list, rollouts, gen_kwargs: dict[str, Any]) -
     out["stm_seconds_per_traj"] = float(np.mean([generate(model, task, [ep], **gen_kwargs).seconds
                                                  for ep in episodes[:k]]))
     try:
-        solve_one = _expert_solver(task)
-        if solve_one is not None:
-            start = time.perf_counter()
-            for ep in episodes[:k]:
-                solve_one(ep)
-            out["ik_seconds_per_traj"] = (time.perf_counter() - start) / k
+        start = time.perf_counter()
+        for ep in episodes[:k]:
+            task.expert_episode(ep)
+        out["ik_seconds_per_traj"] = (time.perf_counter() - start) / k
         batch = episodes[:BATCHED_IK_EPISODES]
-        if task.name == "reacher":  # the batched expert: several episodes in one IK solve
-            q0 = np.stack([ep.q0 for ep in batch])
-            goals = np.array([ep.info["goal"] for ep in batch])
-            start = time.perf_counter()
-            task.expert(q0, goals)
+        start = time.perf_counter()
+        if task.expert_batch(batch) is not None:  # several episodes in one IK solve
             out["ik_batched_seconds_per_traj"] = (time.perf_counter() - start) / len(batch)
-        if task.name == "circle":
-            start = time.perf_counter()
-            task.expert([float(ep.info["radius"]) for ep in batch])
-            out["ik_batched_seconds_per_traj"] = (time.perf_counter() - start) / len(batch)
+    except NotImplementedError:
+        log.info("task %s has no expert for its episodes: IK not timed", task.name)
     except Exception as exc:  # timing the expert is a side measurement: never fail the cell for it
         log.warning("IK timing for %s skipped: %s: %s", task.name, type(exc).__name__, exc)
     return out
-
-
-def _expert_solver(task):
-    """A function solving one episode with the task's IK expert, if the task has one."""
-    if hasattr(task, "expert_rollout"):
-        return task.expert_rollout
-    if task.name == "circle":
-        return lambda ep: task.expert([float(ep.info["radius"])])
-    if hasattr(task, "expert_trajectory"):
-        return lambda ep: task.expert_trajectory(ep.q0, np.asarray(ep.info["goal"]))
-    return None
 
 
 def _nan_rows(rows: list[np.ndarray | None], width: int = 3) -> np.ndarray:
@@ -187,11 +173,14 @@ def _nan_rows(rows: list[np.ndarray | None], width: int = 3) -> np.ndarray:
 
 
 def rollout_arrays(detail: TaskEvaluation, n_expert: int = 0) -> dict[str, np.ndarray]:
-    """The `rollouts/<E>.npz` arrays of the reports contract. `tip` is the forward kinematics of
-    the commanded joint trajectory (the evaluation's physics does not return its measured path;
-    position control tracks it closely). `expert_tip` (changing goal only) for the first
+    """The `rollouts/<E>.npz` arrays of the reports contract, one row per rollout. `tip` is the
+    forward kinematics of the commanded joint trajectory (the evaluation's physics does not return
+    its measured path; position control tracks it closely). `seed` (the training seed),
+    `episode_seed` and `episode` (index within the seed's episodes) identify each rollout, so a
+    report can resample seeds and episodes. `expert_tip` (tasks with a goal switch) for the first
     n_expert episodes: the IK expert's direct path from the rollout's state at the switch."""
     from envs.kinematics import tip_position_np
+    from envs.tasks import task_class
 
     eps, res = detail.episodes, detail.results
     B = len(eps)
@@ -207,27 +196,26 @@ def rollout_arrays(detail: TaskEvaluation, n_expert: int = 0) -> dict[str, np.nd
         "new_goal": vec("new_goal"),
         "switch_step": np.array([int(ep.info.get("switch_step", -1)) for ep in eps], dtype=int),
         "radius": np.array([float(ep.info.get("radius", np.nan)) for ep in eps], dtype=float),
+        "seed": np.full(B, detail.seed, dtype=int),
+        "episode_seed": np.full(B, detail.episode_seed, dtype=int),
+        "episode": np.arange(B, dtype=int),
     }
-    if detail.task == "circle":
-        from envs.tasks.circle import CENTRE
-
-        out["center"] = np.repeat(np.asarray(CENTRE, float)[None], B, axis=0)
-    task = None
+    if any("center" in ep.info for ep in eps):
+        out["center"] = vec("center")
     if n_expert and any("switch_step" in ep.info for ep in eps):
-        from envs.tasks import get_task
-
-        task = get_task(detail.task)
-    if task is not None and hasattr(task, "expert_after_switch"):
+        task = task_class(detail.task)()
         rows: list[np.ndarray | None] = [None] * B
         for i in range(min(n_expert, B)):
             try:
-                k = int(eps[i].info["switch_step"])
-                q = task.expert_after_switch(eps[i], detail.q[i, k])
+                q = task.expert_after_switch(eps[i], detail.q[i, int(eps[i].info["switch_step"])])
+                if q is None:
+                    break
                 q = q[0] if isinstance(q, tuple) else q
                 rows[i] = tip_position_np(np.asarray(q))
             except Exception as exc:  # a figure aid only
                 log.warning("expert path for %s episode %d skipped: %s", detail.task, i, exc)
-        out["expert_tip"] = _nan_rows(rows)
+        if any(r is not None for r in rows):
+            out["expert_tip"] = _nan_rows(rows)
     return out
 
 

@@ -2,8 +2,8 @@
 an MLflow child run under the sweep's parent run, and return the value Optuna minimises.
 
 Objective: "val" = the last validation metric reported by `stm.train` (the closed-loop error
-of rollouts on fresh task episodes), "final_distance" = the task's distance metric over
-`sweep.eval_rollouts` pybullet rollouts (see `distance_metric`), or "failure_rate" = 1 - their
+of rollouts on fresh task episodes), "final_distance" = the mean of the task's primary error
+metric over `sweep.eval_rollouts` pybullet rollouts (`Task.sweep_objective`), or "failure_rate" = 1 - their
 success rate (robust where one knocked-off block makes a mean distance of metres, as in
 pick-and-place). The median pruner watches the validation metric through `on_validation`.
 """
@@ -59,20 +59,6 @@ def trial_configs(cfg: StudyConfig, params: dict[str, Any], seed: int):
     model_over = {FIELDS[k][1]: v for k, v in params.items() if FIELDS[k][0] == "model"}
     train_over = {FIELDS[k][1]: v for k, v in params.items() if FIELDS[k][0] == "train"}
     return dataclasses.replace(model, **model_over), dataclasses.replace(train, **train_over)
-
-
-def distance_metric(task: str) -> str:
-    """The metric the "final_distance" objective minimises for a task (the circle's distance to
-    its goal is meaningless: its radial error instead). The one place the sweep looks at a task's
-    name: to become the task's own attribute (envs/tasks) once tasks carry their sweep objective."""
-    return "radial_rmse_mean" if task == "circle" else "final_distance_mean"
-
-
-def objective_value(objective: str, task: str, metrics: dict[str, float]) -> float:
-    """The value to minimise from a trial's evaluation metrics."""
-    if objective == "failure_rate":
-        return 1.0 - metrics[f"{task}/success_rate"]
-    return metrics[f"{task}/{distance_metric(task)}"]
 
 
 class MlflowTrialLink:
@@ -178,7 +164,7 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
             metrics, _ = evaluate_model(result.model, [cfg.sweep.task], ev, seed=seed, phi_mode=train_cfg.phi_mode,
                                         timings=False)
             log_metrics(client, run_id, metrics)
-            return objective_value(cfg.sweep.objective, cfg.sweep.task, metrics)
+            return task.sweep_objective(cfg.sweep.objective, metrics)  # the task knows its error metric
         if "val" not in last:
             raise RuntimeError("training reported no validation metric (train.val_every > train.iters?)")
         return last["val"]

@@ -178,7 +178,8 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
     log_metrics(client, run_id, {"time/train_seconds": result.seconds, "train/iterations": result.iterations})
 
     metrics, details = evaluate_model(result.model, list(cell.eval_tasks), cell.eval, seed=cell.seed,
-                                      phi_mode=train_cfg.phi_mode)
+                                      phi_mode=train_cfg.phi_mode, data=cell.data,
+                                      train_feedback=train_cfg.feedback, temperature=train_cfg.temperature)
     metrics["time/train_seconds"] = result.seconds
     log_metrics(client, run_id, metrics)
     n_fig = int(cell.eval.get("figures", 0))

@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     if args.results:
         return results_main(args)
-    from reports.build import build_report
+    from reports.build import build_report, nothing_to_report
     from reports.html import root_index
     from reports.store import Store, StoreError
 
@@ -61,10 +61,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         store = Store(args.tracking_uri)
         studies = store.studies(args.experiment, args.study)
-        args.out.mkdir(parents=True, exist_ok=True)
     except StoreError as exc:
         print(f"reports: error: {exc}", file=sys.stderr)
         return 2
+    empty = {s.run_id: nothing_to_report(s) for s in studies}
+    if all(empty.values()):  # nothing to show: say why, and leave no empty output folder behind
+        print(f"reports: error: nothing to report: {'; '.join(empty.values())}", file=sys.stderr)
+        return 2
+    for reason in filter(None, empty.values()):
+        print(f"reports: skipped: {reason}", file=sys.stderr)
+    studies = [s for s in studies if not empty[s.run_id]]
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         print(f"reports: error: cannot write to --out {args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2

@@ -36,6 +36,20 @@ class Report:
         return [f"{f.name}: {f.gap}" for f in self.figures if f.gap]
 
 
+def nothing_to_report(study: Study) -> str | None:
+    """Why the study has nothing a report could show (no finished run), or None when it has."""
+    ch = study.children
+    if study.kind in ("smoothing", "idm"):  # one run, no children: its own metrics are the report
+        if any(k.startswith("metrics.") and v is not None for k, v in study.parent.items()):
+            return None
+        return f"{study.kind} study {study.name!r} logged no metric (run {study.parent.get('status') or '?'})"
+    done = ("FINISHED", "KILLED") if study.kind == "sweep" else ("FINISHED",)  # a pruned trial is KILLED
+    if ch["status"].isin(done).any():
+        return None
+    counts = ", ".join(f"{n} {s}" for s, n in ch["status"].value_counts().sort_index().items()) or "no child run"
+    return f"{study.kind} study {study.name!r} has no finished run ({counts})"
+
+
 def _figure(name: str, build: Callable[[], FigureResult]) -> FigureResult:
     """One figure; data the builder did not foresee makes it a gap of the report, not the end of it."""
     try:

@@ -99,7 +99,9 @@ def compute_time(study: Study, folder: Path) -> FigureResult:
     df = df[df["seconds"] > 0]
     if df.empty:
         return gap(name, title, "no run logged rollouts/ik_timing.json or time/*_seconds_per_traj")
-    order = ("circle", "reacher", "reacher-changing-goal", "pick-place", "stack", "pick-place-changing-goal")
+    from envs.tasks import task_names  # here: it loads torch and pybullet
+
+    order = task_names()  # the tasks' report order (Task.report_rank)
     tasks = [t for t in order if t in set(df["eval_task"])] + sorted(set(df["eval_task"]) - set(order))
     keys = list(TIMING_KEYS)
     fig, ax = plt.subplots(figsize=(max(6.5, 2.4 * len(tasks)), 4.2))

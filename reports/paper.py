@@ -32,8 +32,8 @@ CIRCLE_MAX_RADIAL_ERROR_PCT = 10.0
 CIRCLE_TRAINING_RADII_CM = (5.0, 20.0)  # demonstrations cover radii 5-20 cm
 STM_SPEEDUP_OVER_IK = 2.0
 
-# Reacher success: the gripper within this distance of the goal at the end of the rollout (m).
-REACHER_SUCCESS_RADIUS_M = 0.05
+# Reacher success (the gripper within 5 cm of the goal at the end) is defined once, by the task:
+# envs.tasks.reacher.SUCCESS_RADIUS (imported where needed: importing envs.tasks loads torch and pybullet).
 
 
 def variant_label(name: str) -> str:
@@ -41,7 +41,13 @@ def variant_label(name: str) -> str:
 
 
 def task_label(name: str) -> str:
-    return SUCCESS_TASKS.get(name, name)
+    """The task's display name (Task.label); a name no task registers stays as it is."""
+    from envs.tasks import UnknownTaskError, task_class  # here: it loads torch and pybullet
+
+    try:
+        return task_class(name).label
+    except UnknownTaskError:
+        return name
 
 
 def paper_success(variant: str, task: str) -> float | None:

@@ -1,5 +1,6 @@
 """Figure plumbing shared by the report's figure modules: matplotlib set-up (files only), the result of a
-figure (paths or the gap that replaced it), colours per variant, saving as PNG + PDF, gap panels."""
+figure (paths or the gap that replaced it), colours per variant, saving as PNG + PDF (stm.figures.save_figure),
+gap panels."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ import matplotlib
 
 matplotlib.use("Agg")  # files only; never a window
 import matplotlib.pyplot as plt  # noqa: E402
+
+from stm.figures import save_figure  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -45,12 +48,9 @@ def panel_grid(n: int, panel_w: float, panel_h: float, max_cols: int = 3):
 
 
 def save(fig, folder: Path, name: str, title: str, partial: list[str] | None = None) -> FigureResult:
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = [folder / f"{name}.png", folder / f"{name}.pdf"]
-    for p in paths:
-        fig.savefig(p)
-    plt.close(fig)
-    return FigureResult(name, title, paths, partial=partial or [])
+    """<folder>/<name>.png + .pdf through stm.figures.save_figure, at this module's rcParams dpi."""
+    paths = save_figure(fig, folder / name, dpi=None)
+    return FigureResult(name, title, [Path(p) for p in paths], partial=partial or [])
 
 
 def gap(name: str, title: str, reason: str) -> FigureResult:

@@ -1,57 +1,41 @@
-"""Statistics of the report: Wilson intervals (scipy), aggregation over seeds with gaps marked."""
+"""Statistics of the report: success cells over seeds with gaps marked (the intervals themselves live in
+experiments.stats, shared with the study summary), means over seeds, curve bands."""
 
 from __future__ import annotations
 
-import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
-from scipy.stats import binomtest
 
-CONFIDENCE = 0.95
+from experiments.stats import CONFIDENCE, cluster_bootstrap_interval, success_cell, wilson_interval
 
-
-def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion; (nan, nan) when there are no trials."""
-    if n <= 0:
-        return math.nan, math.nan
-    ci = binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
-    return float(ci.low), float(ci.high)
-
-
-def pooled_successes(rates: Iterable[float], ns: Iterable[float]) -> tuple[int, int]:
-    """Successes and trials pooled over seeds, from each seed's logged rate and rollout count."""
-    k = n = 0
-    for rate, count in zip(rates, ns, strict=True):
-        if pd.isna(rate) or pd.isna(count):
-            continue
-        k += int(round(float(rate) * float(count)))
-        n += int(count)
-    return k, n
+__all__ = ["CONFIDENCE", "aggregate_success", "cluster_bootstrap_interval", "curve_band", "mean_over_seeds",
+           "wilson_interval"]
 
 
 def aggregate_success(evals: pd.DataFrame, children: pd.DataFrame, variants: Sequence[str],
                       tasks: Sequence[str], model_task_of, all_seeds: Sequence[int]) -> pd.DataFrame:
-    """One row per (variant, eval_task): mean/std of the success rate over seeds, the Wilson interval over
-    the pooled rollouts (successes, n), and `status` ok | partial | gap with a `note` naming what is missing.
+    """One row per (variant, eval_task): experiments.stats.success_cell over the seeds that finished (mean/std
+    over seeds, each seed's rate, pooled successes and n with the Wilson interval, the cluster-bootstrap
+    interval) and `status` ok | partial | gap with a `note` naming what is missing.
 
     evals: Study.eval_metrics(); children: Study.children; model_task_of(eval_task) -> training task.
     A seed counts when its run FINISHED and logged the rate; expected seeds are those of the cell's runs
     (whatever their status) or, with no run at all, every seed of the study."""
     rows = []
-    finished = evals[evals["status"] == "FINISHED"] if not evals.empty else evals
-    for variant in variants:
-        for task in tasks:
+    usable = not evals.empty and {"success_rate", "n_rollouts"} <= set(evals.columns)
+    finished = evals[(evals["status"] == "FINISHED") & evals["success_rate"].notna()] if usable else None
+    for task in tasks:  # grouped by task, as the paper's Table I compares the variants on each task
+        for variant in variants:
             cell_runs = children[(children["variant"] == variant) & (children["task"] == model_task_of(task))]
             expected = sorted({int(s) for s in cell_runs["seed"].dropna()} or set(all_seeds))
             got = finished[(finished["variant"] == variant) & (finished["eval_task"] == task)] \
-                if not finished.empty else finished
-            got = got[got["success_rate"].notna()] if "success_rate" in got.columns else got.iloc[0:0]
-            have = sorted({int(s) for s in got["seed"].dropna()})
-            k, n = pooled_successes(got["success_rate"], got["n_rollouts"]) if len(got) and \
-                "n_rollouts" in got.columns else (0, 0)
-            low, high = wilson_interval(k, n)
+                if finished is not None else pd.DataFrame(columns=["seed", "success_rate", "n_rollouts"])
+            cell = success_cell({int(s): (r, n) for s, r, n in zip(got["seed"], got["success_rate"],
+                                                                   got["n_rollouts"], strict=True)
+                                 if not pd.isna(s)})
+            have = sorted(cell["seed_rates"])
             missing = [s for s in expected if s not in have]
             notes = []
             if cell_runs.empty:  # the study never trained this cell: one note, not one per seed
@@ -59,16 +43,9 @@ def aggregate_success(evals: pd.DataFrame, children: pd.DataFrame, variants: Seq
             for s in missing:
                 status = cell_runs.loc[cell_runs["seed"] == s, "status"]
                 notes.append(f"seed {s}: {status.iloc[0] if len(status) else 'no run'}")
-            rates = got["success_rate"].astype(float)
-            rows.append({
-                "variant": variant, "eval_task": task,
-                "mean": float(rates.mean()) if len(rates) else math.nan,
-                "std": float(rates.std(ddof=0)) if len(rates) else math.nan,
-                "seeds": len(have), "expected_seeds": len(expected),
-                "successes": k, "n": n, "ci_low": low, "ci_high": high,
-                "status": "gap" if not have else ("partial" if missing else "ok"),
-                "note": "; ".join(notes),
-            })
+            rows.append({"variant": variant, "eval_task": task, **cell, "expected_seeds": len(expected),
+                         "status": "gap" if not have else ("partial" if missing else "ok"),
+                         "note": "; ".join(notes)})
     return pd.DataFrame(rows)
 
 

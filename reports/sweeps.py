@@ -1,8 +1,9 @@
-"""Figures of an Optuna sweep tracked in MLflow: objective per trial, objective vs each sampled value,
-intermediate values (the pruning signal) per trial."""
+"""An Optuna sweep tracked in MLflow: its figures (objective per trial, objective vs each sampled value,
+intermediate values, the pruning signal, per trial) and its table of the best trials."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import matplotlib.ticker
@@ -11,6 +12,9 @@ import pandas as pd
 
 from reports.plotting import FigureResult, gap, panel_grid, plt, save
 from reports.store import Study
+from reports.tables import GAP, Table, num
+
+TOP_TRIALS = 5
 
 
 def _objective(study: Study) -> tuple[str, pd.Series] | None:
@@ -142,3 +146,58 @@ def objective_label(study: Study) -> str:
     """What the objective measures ('objective: validation metric', ...), or the metric's name."""
     found = _objective(study)
     return _objective_label(study, found[0] if found else "objective")
+
+
+def sweep_task(study: Study) -> str:
+    """The task a sweep study tuned (param sweep.task, else tag task)."""
+    return str(study.parent.get("params.sweep.task") or study.parent.get("tags.task") or "?")
+
+
+def _fmt_param(v) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "–"
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return str(int(f)) if f.is_integer() and "." not in str(v) else num(f, 3)
+
+
+def sweep_table(study: Study) -> Table:
+    """The sweep's best TOP_TRIALS complete trials (objective, sampled values), its trial counts by state and
+    its best trial as the parent run logged it."""
+    df = sweep_frame(study)
+    direction_ = direction(study)
+    states = df["trial_state"].value_counts()
+    space = str(study.parent.get("params.sweep.space") or "").split(",")
+    sampled = [c.removeprefix("params.trial.") for c in df.columns if c.startswith("params.trial.")]
+    params = [p for p in space if p in sampled] + sorted(p for p in sampled if p not in space)
+    done = df[(df["trial_state"] == "COMPLETE") & df["objective"].notna()]
+    done = done.assign(_key=done["objective"] if direction_ == "minimize" else -done["objective"])
+    top = done.sort_values(["_key", "trial_no"]).head(TOP_TRIALS)
+    rows = [[str(i + 1), str(r["trial_no"]), num(r["objective"], 4),
+             *(_fmt_param(r.get(f"params.trial.{p}")) for p in params)] for i, (_, r) in enumerate(top.iterrows())]
+    if not rows:
+        rows = [[GAP, "–", "no complete trial with an objective", *("–" for _ in params)]]
+    best_trial = study.parent.get("metrics.best_trial")
+    best_value = study.parent.get("metrics.best_value")
+    best_params = {p: study.parent.get(f"tags.best.{p}") for p in params}
+    if best_value is None and len(top):  # a sweep that did not log its best on the parent
+        r = top.iloc[0]
+        best_trial, best_value = r["trial_no"], r["objective"]
+        best_params = {p: r.get(f"params.trial.{p}") for p in params}
+    if best_value is None:
+        best = "best trial: none (no complete trial)"
+    else:
+        best = ("best trial: " + (f"#{int(best_trial)}, " if best_trial is not None else "")
+                + f"objective {num(best_value, 4)}; "
+                + ", ".join(f"{p} = {_fmt_param(v)}" for p, v in best_params.items()))
+    counted = {k: int(states.get(k, 0)) for k in ("COMPLETE", "PRUNED", "FAIL")}
+    notes = [f"Study {study.name!r} ({study.profile} profile), variant "
+             f"{study.parent.get('params.sweep.variant') or study.parent.get('tags.variant') or '?'}, sampler "
+             f"{study.parent.get('params.sweep.sampler') or '?'}; {objective_label(study)} ({direction_}d).",
+             f"trials: {len(df)} (complete {counted['COMPLETE']}, pruned {counted['PRUNED']}, failed "
+             f"{counted['FAIL']}, other {len(df) - sum(counted.values())}).",
+             best]
+    return Table(f"sweep_{sweep_task(study)}", f"Sweep on {sweep_task(study)}: top {TOP_TRIALS} trials",
+                 ["rank", "trial", "objective", *params], rows, notes)

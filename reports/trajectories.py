@@ -13,9 +13,14 @@ from reports import paper
 from reports.plotting import FigureResult, gap, mark_gap, panel_grid, plt, save, variant_color
 from reports.store import Study
 
-CHANGING_GOAL_TASKS = ("reacher-changing-goal", "pick-place-changing-goal")
-PATH_TASKS = ("reacher", "pick-place", "stack", "reacher-changing-goal", "pick-place-changing-goal", "circle")
 EPISODES_PER_PANEL = 3
+
+
+def panel_tasks(panel: str) -> list[str]:
+    """The tasks a panel shows: their own choice (Task.panels), in report order."""
+    from envs.tasks import tasks_with_panel  # here, not at import: it loads torch and pybullet
+
+    return tasks_with_panel(panel)
 
 
 def representative_run(study: Study, variant: str, eval_task: str) -> tuple[str, dict[str, np.ndarray]] | None:
@@ -37,22 +42,22 @@ def _row(arrays: dict[str, np.ndarray], key: str, i: int) -> np.ndarray | None:
 
 
 # -------------------------------------------------------------------------------------------- circles
-def _default_circle_centre(path: np.ndarray) -> np.ndarray:
-    """The circle task's fixed centre (an envs constant), else the path's mean point."""
-    try:
-        from envs.tasks.circle import CENTRE
-        return np.asarray(CENTRE, dtype=float)
-    except Exception:  # noqa: BLE001 - envs may be unavailable where only the store is
-        return np.nanmean(path, axis=0)
+def _default_circle_centre(task: str, path: np.ndarray) -> np.ndarray:
+    """The task's "centre" landmark (Task.landmarks), else the path's mean point."""
+    from envs.tasks import task_class
+
+    centre = task_class(task)().landmarks().get("centre")
+    return np.asarray(centre, dtype=float) if centre is not None else np.nanmean(path, axis=0)
 
 
-def _ideal_circle(arrays: dict[str, np.ndarray], i: int, path: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+def _ideal_circle(task: str, arrays: dict[str, np.ndarray], i: int, path: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """(centre, ideal xy points relative to it or None)."""
     ideal = _row(arrays, "ideal_tip", i)
     centre = _row(arrays, "center", i)
     radius = _row(arrays, "radius", i)
     if centre is None:
-        centre = np.nanmean(ideal, axis=0) if ideal is not None else _default_circle_centre(path)
+        centre = np.nanmean(ideal, axis=0) if ideal is not None else _default_circle_centre(task, path)
     if ideal is not None:
         return centre, (ideal - centre)[:, :2]
     if radius is not None:
@@ -64,10 +69,12 @@ def _ideal_circle(arrays: dict[str, np.ndarray], i: int, path: np.ndarray) -> tu
 def circles(study: Study, folder: Path) -> FigureResult:
     name, title = "circles", "Generated vs ideal circles"
     variants = study.variants
-    reps = {v: representative_run(study, v, "circle") for v in variants}
+    circle_tasks = panel_tasks("circles")
+    task = circle_tasks[0] if circle_tasks else ""
+    reps = {v: representative_run(study, v, task) for v in variants} if task else {}
     reps = {v: r for v, r in reps.items() if r is not None}
     if not reps:
-        return gap(name, title, "no run logged rollouts/circle.npz")
+        return gap(name, title, f"no run logged rollouts/{task or '<circle task>'}.npz")
     radii = sorted({round(float(r), 4) for _, a in reps.values() for r in np.atleast_1d(a.get("radius", []))
                     if not math.isnan(float(r))})
     if not radii:  # no radius array: one panel per episode index
@@ -82,7 +89,7 @@ def circles(study: Study, folder: Path) -> FigureResult:
                 continue
             i = idx[0]
             path = np.asarray(arrays["tip"][i], dtype=float)
-            centre, ideal = _ideal_circle(arrays, i, path)
+            centre, ideal = _ideal_circle(task, arrays, i, path)
             if ideal is not None and not drew_ideal:
                 ax.plot(ideal[:, 0] * 100, ideal[:, 1] * 100, "k--", lw=1.2)
                 drew_ideal = True
@@ -114,7 +121,8 @@ def _set_3d_labels(ax) -> None:
 def tip_paths(study: Study, folder: Path) -> FigureResult:
     name, title = "tip_paths", "Rollout tool-tip paths in 3D"
     variants = study.variants
-    tasks = [t for t in PATH_TASKS if t in _eval_tasks(study)] or list(PATH_TASKS[:3])
+    path_tasks = panel_tasks("tip_paths")
+    tasks = [t for t in path_tasks if t in _eval_tasks(study)] or path_tasks[:3]
     reps = {(t, v): representative_run(study, v, t) for t in tasks for v in variants}
     if all(r is None for r in reps.values()):
         return gap(name, title, "no run logged rollouts/<task>.npz")
@@ -158,20 +166,21 @@ def tip_paths(study: Study, folder: Path) -> FigureResult:
 def _eval_tasks(study: Study) -> set[str]:
     em = study.eval_metrics()
     found = set(em["eval_task"]) if not em.empty else set()
-    return found | ({"circle"} if not study.circle_metrics().empty else set())
+    return found | (set(panel_tasks("circles")) if not study.circle_metrics().empty else set())
 
 
 def changing_goal(study: Study, folder: Path) -> FigureResult:
     name, title = "changing_goal", "Changing goal: adapted path vs the expert's direct path"
     variants = study.variants
-    reps = {(t, v): representative_run(study, v, t) for t in CHANGING_GOAL_TASKS for v in variants}
+    tasks = panel_tasks("changing_goal")
+    reps = {(t, v): representative_run(study, v, t) for t in tasks for v in variants}
     if all(r is None for r in reps.values()):
         return gap(name, title, "no run logged rollouts/<changing-goal task>.npz")
-    fig = plt.figure(figsize=(3.9 * len(variants), 3.9 * len(CHANGING_GOAL_TASKS)))
+    fig = plt.figure(figsize=(3.9 * len(variants), 3.9 * len(tasks)))
     missing = []
-    for r, t in enumerate(CHANGING_GOAL_TASKS):
+    for r, t in enumerate(tasks):
         for c, v in enumerate(variants):
-            ax = fig.add_subplot(len(CHANGING_GOAL_TASKS), len(variants), r * len(variants) + c + 1,
+            ax = fig.add_subplot(len(tasks), len(variants), r * len(variants) + c + 1,
                                  projection="3d")
             ax.set_title(f"{paper.task_label(t)}\n{paper.variant_label(v)}", fontsize=9)
             _set_3d_labels(ax)

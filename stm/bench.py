@@ -8,8 +8,15 @@ reacher (3x64, 3 Gaussians, batch 45, 70 steps), with the task's state size.
 Timed in the same run, interleaved round by round (the machine is shared, so
 medians of interleaved rounds give fair ratios): teacher forcing (tf),
 auto-conditioning with u = v = 2 and u = v = 5, and a plain reference (nn.LSTM +
-linear MDN head + mixture NLL + Adam with clipping, a dozen lines). Then 1,000 reacher rollouts of
-70 steps with FK grounding. Ratios are what to read; absolute times depend on load.
+linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three
+schedules for a pack of K = 3 models trained together (stm.packed): packed_speedup_* =
+(K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the lower of the two
+auto-conditioned schedules'. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
+3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and
+for 34 episodes (an evaluation cell's).
+
+Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
+time also counts the other processes' load. Ratios are what to read.
 """
 
 from __future__ import annotations
@@ -30,6 +37,8 @@ from stm import mdn
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
+from stm.packed import PackedAdam, PackedSTM, clip_per_model, packed_unroll
+from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.train import DemoTensors, batch_loss
 
@@ -83,15 +92,46 @@ class PlainMDN(nn.Module):
         return mdn.mixture_nll(*mdn.split_params(out, self.m, self.dim, 1e-3), y).mean()
 
 
-def _timer(fn, rounds: int, reps: int) -> list[float]:
-    return [_time_once(fn, reps) for _ in range(rounds)]
+PACK = 3  # models per pack
+EVAL_EPISODES = 34  # episodes a cell evaluates per seed: where batching the K models pays (1,000 are compute-bound)
+CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
+_clock = CLOCKS["cpu"]
 
 
 def _time_once(fn, reps: int) -> float:
-    start = time.perf_counter()
+    start = _clock()
     for _ in range(reps):
         fn()
-    return (time.perf_counter() - start) / reps
+    return (_clock() - start) / reps
+
+
+def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin):
+    """A training-iteration factory for a pack of PACK models (each its own seed's init), every
+    model on the same batch: packed unroll, per-model losses, backward, per-model clipping, Adam."""
+    models = []
+    for seed in range(PACK):
+        torch.manual_seed(seed)
+        models.append(STM(model_cfg, task.layout, *stats))
+    pack = PackedSTM.from_models(models)
+    params = list(pack.stacked)
+    opt, clips, active = PackedAdam(params, [1e-4] * PACK), torch.ones(PACK), torch.arange(PACK)
+    gens = [torch.Generator().manual_seed(seed) for seed in range(PACK)]
+    states, q, psi, mask = (t.expand(PACK, *t.shape) for t in (batch.states, batch.q, batch.psi, batch.mask))
+    steps = [batch.mask.shape[1]] * PACK
+
+    def make(cfg: TrainConfig):
+        def step():
+            view = pack.view()
+            raw = packed_unroll(view, states, q, psi, steps, task, cfg, kin, gens)
+            losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask)
+            for p in params:
+                p.grad = None
+            losses.sum().backward()
+            clip_per_model(params, clips)
+            opt.step(active)
+        return step
+
+    return make
 
 
 def training_bench(size: str, rounds: int, reps: int) -> dict:
@@ -127,8 +167,10 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         torch.nn.utils.clip_grad_norm_(plain.parameters(), 1.0)  # like for like: the STM step clips too
         plain_opt.step()
 
-    cases = {"plain": plain_step, "tf": stm_step(TrainConfig(v=0)), "ac_u2v2": stm_step(TrainConfig(u=2, v=2)),
-             "ac_u5v5": stm_step(TrainConfig(u=5, v=5))}
+    schedules = {"tf": TrainConfig(v=0), "ac_u2v2": TrainConfig(u=2, v=2), "ac_u5v5": TrainConfig(u=5, v=5)}
+    packed = _packed_step(task, stats, model.config, batch, kin)
+    cases = {"plain": plain_step, **{k: stm_step(c) for k, c in schedules.items()},
+             **{f"packed_{k}": packed(c) for k, c in schedules.items()}}
     for fn in cases.values():  # warm-up
         fn()
     times: dict[str, list[float]] = {k: [] for k in cases}
@@ -136,12 +178,20 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         for k, fn in cases.items():
             times[k].append(_time_once(fn, reps))
     med = {k: statistics.median(v) for k, v in times.items()}
+    speedup = {k: round(PACK * med[k] / med[f"packed_{k}"], 3) for k in ("tf", "ac_u2v2", "ac_u5v5")}
     return {
         "size": size, "state_dim": task.layout.dim, **{k: spec[k] for k in ("hidden", "mixtures", "batch", "steps")},
         "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items()},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
         "ratio_tf_over_plain": round(med["tf"] / med["plain"], 3),
+        "packed_k": PACK,
+        **{f"packed_speedup_{k}": speedup[k] for k in ("tf", "ac_u2v2", "ac_u5v5")},
+        "packed_speedup_ac": min(speedup["ac_u2v2"], speedup["ac_u5v5"]),
+        "packed_ratio_ac_u2v2_over_tf": round(med["packed_ac_u2v2"] / med["packed_tf"], 3),
+        "packed_ratio_ac_u5v5_over_tf": round(med["packed_ac_u5v5"] / med["packed_tf"], 3),
+        # the clock's seconds per 1,000 auto-conditioned iterations of the whole pack (CPU seconds with --clock cpu)
+        "packed_seconds_per_1000_ac_iters": {k: round(med[f"packed_{k}"] * 1e3, 1) for k in ("ac_u2v2", "ac_u5v5")},
     }
 
 
@@ -157,9 +207,27 @@ def rollout_bench(n: int = 1000, steps: int = 70, rounds: int = 3) -> dict:
                         psi=np.repeat(rng.uniform([0.4, -0.2, 0.0], [0.8, 0.4, 0.2])[None], steps + 1, 0),
                         horizon=steps) for _ in range(n)]
     generate(model, task, episodes[:8])  # warm-up
-    secs = [generate(model, task, episodes).seconds for _ in range(rounds)]
+    models = [model]
+    for seed in range(1, PACK):
+        torch.manual_seed(seed)
+        models.append(STM(model.config, task.layout, *stats).eval())
+    pack = PackedSTM.from_models(models)
+    generate_packed(pack, task, episodes[:8])  # warm-up
+    few = episodes[:EVAL_EPISODES]
+    secs, separate, packed, separate_few, packed_few = [], [], [], [], []
+    for _ in range(rounds):  # interleaved
+        secs.append(_time_once(lambda: generate(model, task, episodes), 1))  # (generate's own .seconds is wall)
+        separate.append(_time_once(lambda: [generate(m, task, episodes) for m in models], 1))
+        packed.append(_time_once(lambda: generate_packed(pack, task, episodes), 1))
+        separate_few.append(_time_once(lambda: [generate(m, task, few) for m in models], 3))
+        packed_few.append(_time_once(lambda: generate_packed(pack, task, few), 3))
     return {"rollouts": n, "steps": steps, "fk_grounding": True, "seconds": round(statistics.median(secs), 3),
-            "seconds_all": [round(s, 3) for s in secs]}
+            "seconds_all": [round(s, 3) for s in secs], "packed_k": PACK,
+            "packed_seconds": round(statistics.median(packed), 3),
+            "separate_seconds": round(statistics.median(separate), 3),
+            "packed_speedup": round(statistics.median(separate) / statistics.median(packed), 3),
+            "eval_episodes": EVAL_EPISODES,
+            "packed_speedup_eval_episodes": round(statistics.median(separate_few) / statistics.median(packed_few), 3)}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -170,11 +238,16 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (0: leave torch's default)")
     ap.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
     ap.add_argument("--no-rollouts", action="store_true")
+    ap.add_argument("--clock", choices=list(CLOCKS), default="cpu",
+                    help="cpu: this process's CPU time (default; steady on a shared machine); wall: elapsed time")
     args = ap.parse_args(argv)
+    global _clock
+    _clock = CLOCKS[args.clock]
     if args.threads:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
+              "clock": args.clock,
               "load_average_before": [round(x, 2) for x in load_before],
               "training": [training_bench(s, args.rounds, args.reps) for s in args.sizes]}
     if not args.no_rollouts:
@@ -190,10 +263,13 @@ def main(argv: list[str] | None = None) -> dict:
                   f"{r['steps']} steps, D={r['state_dim']}): "
                   + ", ".join(f"{k} {v:.1f} ms" for k, v in ms.items())
                   + f" | ac2/tf {r['ratio_ac_u2v2_over_tf']:.2f}, ac5/tf {r['ratio_ac_u5v5_over_tf']:.2f},"
-                  f" tf/plain {r['ratio_tf_over_plain']:.2f}")
+                  f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
+                  f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f}")
         if "rollouts" in result:
             ro = result["rollouts"]
-            print(f"rollouts: {ro['rollouts']} x {ro['steps']} steps with FK grounding in {ro['seconds']:.2f} s")
+            print(f"rollouts: {ro['rollouts']} x {ro['steps']} steps with FK grounding in {ro['seconds']:.2f} s; "
+                  f"{ro['packed_k']} models batched {ro['packed_seconds']:.2f} s, one after the other "
+                  f"{ro['separate_seconds']:.2f} s")
     return result
 
 

@@ -12,6 +12,9 @@ the steps (autograd runs a node only once every consumer of its outputs is done)
 Same maths and weights as nn.LSTM: gates i, f, g, o (rearranged to i, f, o, g) with
 c' = f c + i g and h' = o tanh(c'); biases b_ih + b_hh. Checked against nn.LSTM and a
 plain reference unroll in tests/test_stm_speed_equivalence.py.
+
+The step functions are rank-agnostic: with a leading model axis (x (K, B, D), w (K, I, 4H))
+they step K independent models at once with batched matmuls (stm.packed_cell).
 """
 
 from __future__ import annotations
@@ -44,13 +47,18 @@ class _Weights(torch.autograd.Function):
             xh, dg = store.xh[k], store.dgates[k]
             store.xh[k], store.dgates[k] = [], []  # a second backward (retain_graph) starts afresh
             gw, gb = grads[2 * k], grads[2 * k + 1]
-            if xh:
-                xh, dg = torch.cat(xh), torch.cat(dg)
-                dw, db = xh.t() @ dg, dg.sum(0)
+            if xh:  # rows (N, .) of one model, or (K, N, .) of a pack of K (stm.packed_cell)
+                xh, dg = torch.cat(xh, -2), torch.cat(dg, -2)
+                dw, db = xh.transpose(-2, -1) @ dg, dg.sum(-2, keepdim=dg.dim() == 3)
                 gw = dw if gw is None else gw + dw
                 gb = db if gb is None else gb + db
             out += [gw, gb]
         return (None, *out)
+
+
+def _affine(b: torch.Tensor, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """b + x @ w for one model (x (B, I), w (I, O)) or a pack (x (K, B, I), w (K, I, O), b (K, 1, O))."""
+    return torch.addmm(b, x, w) if x.dim() == 2 else torch.baddbmm(b, x, w)
 
 
 def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tensor], ws: list[torch.Tensor],
@@ -60,20 +68,20 @@ def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tenso
       d pre-activations = [dc, dc, dh, dc] * [g, c, tanh(c'), 2 i] * s (1 - s)  (`gd`: all but the first)
       dc = dc' + dh * o (1 - tanh(c')^2)                                          (`o_dt`: the last factor)
     with s the gate sigmoids (the g gate's doubled: g = 2 s_g - 1)."""
-    H = hs[0].shape[1]
+    H = hs[0].shape[-1]
     h_out: list[torch.Tensor] = []
     c_out: list[torch.Tensor] = []
     saved: list[list[torch.Tensor]] = []
     inp = x
     for k in range(len(hs)):
-        xh = torch.cat([inp, hs[k]], 1)
-        sig = torch.sigmoid(torch.addmm(bs[k], xh, ws[k]))  # i, f, o and sigmoid(2 g_pre)
-        i, f, o = sig[:, :H], sig[:, H: 2 * H], sig[:, 2 * H: 3 * H]
-        g = sig[:, 3 * H:] * 2.0 - 1.0  # tanh(x) = 2 sigmoid(2x) - 1: one sigmoid for all gates
+        xh = torch.cat([inp, hs[k]], -1)
+        sig = torch.sigmoid(_affine(bs[k], xh, ws[k]))  # i, f, o and sigmoid(2 g_pre)
+        i, f, o = sig[..., :H], sig[..., H: 2 * H], sig[..., 2 * H: 3 * H]
+        g = sig[..., 3 * H:] * 2.0 - 1.0  # tanh(x) = 2 sigmoid(2x) - 1: one sigmoid for all gates
         c_new = torch.addcmul(f * cs[k], i, g)
         tc = torch.tanh(c_new)
         inp = o * tc
-        gd = torch.cat([g, cs[k], tc, i * 2.0], 1) * torch.addcmul(sig, sig, sig, value=-1.0)
+        gd = torch.cat([g, cs[k], tc, i * 2.0], -1) * torch.addcmul(sig, sig, sig, value=-1.0)
         o_dt = torch.addcmul(o, inp, tc, value=-1.0)
         h_out.append(inp)
         c_out.append(c_new)
@@ -100,17 +108,17 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
         else:
             dh = ghk if below is None else ghk + below
         dc = o_dt * dh if gck is None else torch.addcmul(gck, o_dt, dh)
-        dgates = torch.cat([dc, dc, dh, dc], 1).mul_(gd)
+        dgates = torch.cat([dc, dc, dh, dc], -1).mul_(gd)
         grad_c.append(dc * f)
-        H = f.shape[1]
-        d_in = xh.shape[1] - H
+        H = f.shape[-1]
+        d_in = xh.shape[-1] - H
         if k > 0 or need_x:
-            dxh = torch.mm(dgates, ws[k].t())
-            below = dxh[:, :d_in]
-            grad_h.append(dxh[:, d_in:])
+            dxh = dgates @ ws[k].transpose(-2, -1)
+            below = dxh[..., :d_in]
+            grad_h.append(dxh[..., d_in:])
         else:  # a ground-truth input: only the recurrent part
             below = None
-            grad_h.append(torch.mm(dgates, ws[k][d_in:].t()))
+            grad_h.append(dgates @ ws[k][..., d_in:, :].transpose(-2, -1))
         dgs.append(dgates)
     grad_h.reverse()
     grad_c.reverse()
@@ -119,7 +127,8 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
 
 
 class _StackStep(torch.autograd.Function):
-    """One time step of the L-layer stack: x (B, D), per layer h_k, c_k (B, H) -> h_k', c_k'.
+    """One time step of the L-layer stack: x (B, D), per layer h_k, c_k (B, H) -> h_k', c_k'
+    (or, for a pack of K models, (K, B, .) each, with weights (K, I, 4H) and biases (K, 1, 4H)).
 
     Per-layer tensors in and out (no stack/select per step); w_t has the gate columns in
     the order i, f, o, g, those of g doubled, so that one sigmoid gives all four gates."""

@@ -8,13 +8,12 @@ Everything needed to resume bit-exactly and nothing that needs unpickling code.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from envs.fileio import atomic_open
 from stm.config import ModelConfig
 from stm.model import STM, layout_from_dict
 
@@ -28,17 +27,8 @@ class CheckpointError(RuntimeError):
 def save_checkpoint(payload: dict[str, Any], path: Path) -> Path:
     """Write to a temporary file in the same folder, then rename over `path` (atomic on POSIX)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_open(path, "wb") as f:
+        torch.save(payload, f)
     return path
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from tqdm.auto import tqdm
 
+from envs.fileio import atomic_open
 from envs.robot import LIMITS, NEUTRAL_Q
 from stm.torque_sim import CONTROL_PERIOD, PHYSICS_STEP, STATE_DIM, JointDynamics, TorqueWorld
 
@@ -187,13 +188,9 @@ def cache_path(cfg: ExplorationConfig, cache_dir: str | Path | None = None) -> P
 
 def save(data: IDMData, cfg: ExplorationConfig, path: str | Path) -> None:
     """Write atomically (temporary file, then rename): a killed run leaves no half file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     meta = json.dumps({"format": FORMAT_VERSION, "hash": cfg.config_hash(), "config": cfg.as_dict()})
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
+    with atomic_open(path, "wb") as fh:
         np.savez(fh, states=data.states, actions=data.actions, meta=np.array(meta))
-    os.replace(tmp, path)
 
 
 def load(cfg: ExplorationConfig, path: str | Path) -> IDMData:

@@ -27,6 +27,7 @@ import torch
 
 from envs.kinematics import tip_position_np
 from envs.sim import Scene
+from envs.tasks.reacher import SUCCESS_RADIUS  # the reacher's success criterion
 from stm.figures import save_figure
 from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, Tracking, save_idm, track_plan, train_idm
 from stm.idm_data import ExplorationConfig, idm_features, load_or_collect
@@ -34,8 +35,6 @@ from stm.smoothing import smooth_gd
 from stm.torque_sim import TorqueWorld
 
 log = logging.getLogger(__name__)
-
-SUCCESS_RADIUS = 0.05  # m, the reacher's success criterion
 
 
 @dataclass(frozen=True)

@@ -170,3 +170,21 @@ def test_non_default_task_config_has_its_own_entry(tmp_path):
     entries = sorted(p.name for p in tmp_path.glob("reacher_seed0*.npz"))
     assert len(entries) == 2, entries
     assert len(load_demos(Reacher(n_demos=3), seed=0, cache_dir=tmp_path)) == 3  # still cached, not rebuilt
+
+
+def test_atomic_write_replaces_whole_files_and_a_failed_write_leaves_the_old_one(tmp_path):
+    from envs.fileio import atomic_open, atomic_write_bytes, atomic_write_text
+
+    target = tmp_path / "sub" / "f.bin"
+    atomic_write_bytes(target, b"old")
+    with pytest.raises(RuntimeError, match="killed"):
+        with atomic_open(target, "wb") as f:
+            f.write(b"half of the new")
+            raise RuntimeError("killed mid-write")
+    assert target.read_bytes() == b"old"
+    assert sorted(p.name for p in target.parent.iterdir()) == ["f.bin"]  # no temporary file left
+    atomic_write_text(target, "new")
+    assert target.read_text() == "new"
+    with pytest.raises(ValueError, match="mode"):
+        with atomic_open(target, "ab"):
+            pass

@@ -15,34 +15,34 @@ from PIL import Image
 from test_experiments_e2e import _cli, _env  # the e2e tests' way of running the experiments CLI on a tmp store
 
 from reports import paper
-from reports.results import MAX_FIGURE_WIDTH, ResultsError, parse_template, regeneration_command
+from reports.results import MAX_FIGURE_WIDTH, ResultsError, parse_template, portable_uri, regeneration_command
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 
 TEMPLATE = """# Results (test)
 
-{{provenance}}
+{{ provenance }}
 
-{{command}}
+{{ command }}
 
 ## Table I
-{{success_table}}
+{{ success_table }}
 
-{{circle_table}}
+{{ circle_table }}
 
-{{train_time_table}}
+{{ train_time_table }}
 
-{{figure:success_bars}}
+{{ figure("success_bars") }}
 
-{{figure:circles}}
+{{ figure("circles") }}
 
 ## Sweep
-{{sweep_table:reacher}}
+{{ sweep_table("reacher") }}
 
-{{sweep_figure:reacher}}
+{{ sweep_figure("reacher") }}
 
-{{figure:training_curves}}
+{{ figure("training_curves") }}
 
 ## Discussion
 TODO
@@ -94,13 +94,17 @@ def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
     assert abl.data.tags["study_name"] in text and swp.data.tags["study_name"] in text
     assert f"`{abl.data.params['git_commit']}`" in text
     assert f"{abl.data.metrics['time/study_seconds']:.1f} s" in text
-    # the success table: paper columns with Table I's values, ours with Wilson intervals from the runs
+    # the success table: Table I's value beside each row, ours with per-seed rates, both intervals and n
     success = text.split("### Success rate (Table I, extended)")[1].split("###")[0]
-    assert "reacher (paper)" in success
+    assert re.search(r"\| paper +\|$", success.splitlines()[2]), success
     for variant in ("lstm", "ac-lstm-mdn"):
-        row = next(line for line in success.splitlines() if line.startswith(f"| {paper.variant_label(variant)} |"))
-        assert f"| {100 * paper.TABLE_I[variant]['reacher']:.0f}% |" in row
-        assert re.search(r"\d+% \[\d+%–\d+%\] n=2", row), row
+        cells = next([c.strip() for c in line.strip("|").split("|")] for line in success.splitlines()
+                     if re.match(rf"\| reacher +\| {re.escape(paper.variant_label(variant))} +\|", line))
+        task, _, rate, per_seed, wilson, seed_aware, rollouts, seeds, paper_rate = cells
+        assert paper_rate == f"{100 * paper.TABLE_I[variant]['reacher']:.0f}%"
+        assert re.fullmatch(r"\d+%", rate) and re.fullmatch(r"\d+%", per_seed), cells  # smoke: one seed
+        assert re.fullmatch(r"\d+–\d+%", wilson) and seed_aware == "–", cells  # one seed: no seed-level interval
+        assert (rollouts, seeds) == ("2", "1"), cells
     assert "### Circle drawing: radial error per radius" in text
     assert "### Training time per variant and task" in text
     # the sweep table: trial counts match the Optuna states logged on the trials, best = the parent's best
@@ -109,8 +113,9 @@ def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
     best = swp.data.metrics["best_value"]
     assert f"objective {best:.4g}" in sweep
     assert f"m = {swp.data.tags['best.m']}" in sweep
-    # the command pins the studies used and the store (not the default one: it came from the environment)
-    assert f"--tracking-uri sqlite:///{store / 'mlflow.db'}" in text
+    # the command pins the studies used; the store is the default one of the working directory: not named,
+    # and no path of this machine anywhere in the file
+    assert "--tracking-uri" not in text and str(store) not in text and str(Path.home()) not in text
     assert f"--ablation {abl.data.tags['study_name']}" in text and f"--sweep {swp.data.tags['study_name']}" in text
 
 
@@ -158,7 +163,7 @@ def test_twice_gives_the_same_bytes(store, rendered, tmp_path):
 def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypatch):
     from reports import results
 
-    template = "{{figure:success_bars}}\n\n{{figure:train_time}}\n"
+    template = '{{ figure("success_bars") }}\n\n{{ figure("train_time") }}\n'
     assert _main(store, tmp_path, template=template) == 0
     assert (tmp_path / "docs" / "figures" / "success_bars.png").exists()
 
@@ -173,10 +178,13 @@ def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypa
 
 
 @pytest.mark.parametrize(("template", "message"), [
-    ("x {{success_tabel}} y", "unknown placeholder {{success_tabel}} (line 1)"),
-    ("a\n{{figure:no_such_figure}}", "unknown figure 'no_such_figure'"),
-    ("{{sweep_table:pick-place}}", "no sweep study of task 'pick-place'"),
-    ("{{success_table:reacher}}", "unknown placeholder {{success_table:reacher}}"),
+    ("x {{ success_tabel }} y", "unknown placeholder {{ success_tabel }} (line 1)"),
+    ('a\n{{ figure("no_such_figure") }}',
+     'unknown figure \'no_such_figure\' in {{ figure("no_such_figure") }} (line 2)'),
+    ('{{ sweep_table("pick-place") }}', "no sweep study of task 'pick-place'"),
+    ('{{ success_table("reacher") }}', "unknown placeholder call (line 1)"),
+    ("{{ figure }}", "needs its argument"),
+    ("{{figure:success_bars}}", "template syntax error (line 1)"),
 ])
 def test_bad_template_is_a_one_line_error_and_writes_nothing(store, tmp_path, capsys, template, message):
     assert _main(store, tmp_path, template=template) == 2
@@ -197,15 +205,23 @@ def test_bad_selection_is_a_one_line_error(store, tmp_path, capsys):
         assert not (tmp_path / "docs").exists()
 
 
-def test_parse_template_and_command():
-    phs = parse_template("{{provenance}}\n\n{{ sweep_figure:pick-place:sweep_params }} {{figure:tip_paths}}")
-    assert [(p.kind, p.arg, p.line) for p in phs] == [("provenance", None, 1), ("sweep_figure",
-                                                      "pick-place:sweep_params", 3), ("figure", "tip_paths", 3)]
-    with pytest.raises(ResultsError, match="sweep_table takes a task only"):
-        parse_template("{{sweep_table:reacher:x}}")
+def test_parse_template_and_command(tmp_path, monkeypatch):
+    phs = parse_template('{{provenance}}\n\n{{ sweep_figure("pick-place", "sweep_params") }} {{figure("tip_paths")}}')
+    assert [(p.kind, p.args, p.line) for p in phs] == [
+        ("provenance", (), 1), ("sweep_figure", ("pick-place", "sweep_params"), 3), ("figure", ("tip_paths",), 3)]
+    with pytest.raises(ResultsError, match="sweep_table takes 1 argument"):
+        parse_template('{{ sweep_table("reacher", "x") }}')
     cmd = regeneration_command(None, [], Path("reports/RESULTS.template.md"), Path("reports/RESULTS.md"),
                                Path("reports/figures"), None)
     assert cmd == "nox -s report -- --results"
+    # stores named relative to the working directory, or by the environment variable: no path of this machine
+    monkeypatch.chdir(tmp_path)
+    assert portable_uri(f"sqlite:///{tmp_path / 'mlflow.db'}") is None  # the default store
+    assert portable_uri(f"sqlite:///{tmp_path / 'stores' / 'a.db'}") == "sqlite:///stores/a.db"
+    assert portable_uri("postgresql://user:secret@db/mlflow") == "$MLFLOW_TRACKING_URI"
+    cmd = regeneration_command(None, [], tmp_path / "t.md", Path("reports/RESULTS.md"), Path("reports/figures"),
+                               "http://user:secret@host:5000")
+    assert cmd == 'nox -s report -- --results --tracking-uri "$MLFLOW_TRACKING_URI" --template t.md'
 
 
 def test_repository_template_parses():

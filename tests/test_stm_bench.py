@@ -7,10 +7,11 @@ import torch
 
 from envs.robot import NEUTRAL_Q
 from envs.tasks.base import Episode
-from stm.bench import SIZES, BenchTask, bench_demos
+from stm.bench import SIZES, BenchTask, _packed_step, bench_demos
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
+from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.train import DemoTensors, batch_loss
 
@@ -52,3 +53,22 @@ def test_thousand_reacher_rollouts(benchmark, reacher_setup):
            for _ in range(1000)]
     ro = benchmark.pedantic(generate, args=(model, task, eps), rounds=3, warmup_rounds=1)
     assert ro.q.shape == (1000, 71, 7) and np.isfinite(ro.q).all()
+
+
+@pytest.mark.benchmark(group="stm-train-iteration-reacher")
+@pytest.mark.parametrize("u,v", [(1, 0), (2, 2), (5, 5)], ids=["tf", "ac-u2v2", "ac-u5v5"])
+def test_packed_training_iteration(benchmark, reacher_setup, u, v):
+    """One iteration of a pack of 3 models (stm.packed): compare with 3x the rows above."""
+    task, model, batch = reacher_setup
+    step = _packed_step(task, (model.state_mean, model.state_std), model.config, batch, default_tip_kinematics())
+    benchmark.pedantic(step(TrainConfig(u=u, v=v)), rounds=5, warmup_rounds=1)
+
+
+@pytest.mark.benchmark(group="stm-rollouts")
+def test_thousand_reacher_rollouts_of_three_models_batched(benchmark, reacher_setup):
+    task, model, _ = reacher_setup
+    rng = np.random.default_rng(0)
+    eps = [Episode(q0=NEUTRAL_Q + rng.uniform(-0.2, 0.2, 7), psi=np.tile([0.6, 0.1, 0.1], (71, 1)), horizon=70)
+           for _ in range(1000)]
+    out = benchmark.pedantic(generate_packed, args=([model] * 3, task, eps), rounds=3, warmup_rounds=1)
+    assert len(out) == 3 and all(ro.q.shape == (1000, 71, 7) and np.isfinite(ro.q).all() for ro in out)

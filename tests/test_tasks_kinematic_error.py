@@ -4,7 +4,7 @@ import numpy as np
 
 from envs.tasks import get_task
 from envs.tasks.circle import circle_path
-from envs.tasks.pickplace import GRASP_HEIGHT
+from envs.tasks.pickplace_expert import GRASP_HEIGHT
 
 
 def test_reacher_error_is_the_end_distance_to_the_last_goal():

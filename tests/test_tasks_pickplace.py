@@ -12,7 +12,8 @@ from envs.kinematics import default_kinematics, tip_position_np
 from envs.sim import TABLE_TOP_Z
 from envs.tasks import get_task
 from envs.tasks.base import Episode
-from envs.tasks.pickplace import GOAL_REGION, LEVELS, SUB_HORIZON, PickPlace, pad_rows
+from envs.tasks.pickplace import GOAL_REGION, LEVELS, PickPlace, pad_rows
+from envs.tasks.stack import SUB_HORIZON
 
 
 @pytest.fixture(scope="module")
@@ -184,7 +185,7 @@ def test_changing_goal_expert_adapts_and_a_blind_one_fails():
 
 
 def test_retreat_starts_are_poised_above_a_goal_in_the_grasp_frame():
-    from envs.tasks.pickplace import GRASP_HEIGHT, GRASP_ROT, RETREAT, tip_poses
+    from envs.tasks.pickplace_expert import GRASP_HEIGHT, GRASP_ROT, RETREAT, tip_poses
 
     task = get_task("pick-place", retreat_starts=1.0)
     tip, rot = tip_poses(task.sample_starts(np.random.default_rng(3), 12))

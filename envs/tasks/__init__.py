@@ -1,8 +1,26 @@
-"""Registered tasks. Importing this package registers the built-in ones (one import per task module)."""
+"""Registered tasks: importing this package imports every module in envs/tasks/
+(envs.tasks.registry.discover), so a new task is one new module with an @register class.
 
-import envs.tasks.circle  # noqa: F401
-import envs.tasks.pickplace  # noqa: F401
-import envs.tasks.reacher  # noqa: F401
-from envs.tasks.base import TASKS, Demos, Episode, StateLayout, Task, UnknownTaskError, get_task, register
+Adding a task: envs/tasks/<name>.py with a `@register`-ed subclass of envs.tasks.base.Task
+(the interface and its defaults are documented there) and tests/test_tasks_<name>.py.
+An evaluation-only task sets `model_task` to the training task whose model it uses."""
 
-__all__ = ["TASKS", "Demos", "Episode", "StateLayout", "Task", "UnknownTaskError", "get_task", "register"]
+from envs.tasks.base import Demos, Episode, StateLayout, Task
+from envs.tasks.registry import (
+    TASKS,
+    UnknownTaskError,
+    discover,
+    evaluation_tasks,
+    get_task,
+    model_task_of,
+    register,
+    task_class,
+    task_names,
+    tasks_with_panel,
+    training_tasks,
+)
+
+discover()
+
+__all__ = ["TASKS", "Demos", "Episode", "StateLayout", "Task", "UnknownTaskError", "evaluation_tasks", "get_task",
+           "model_task_of", "register", "task_class", "task_names", "tasks_with_panel", "training_tasks"]

@@ -1,5 +1,6 @@
 """What every task provides: its state layout, how phi and psi come from joint
-positions, its demonstrations, evaluation episodes and a physics success check.
+positions, its demonstrations, evaluation episodes, a physics success check, its
+expert's timing, its metrics and sweep objective, and what its figures show.
 
 State convention (one row per time step t = 0..T):
     s_t = (dq_t [7], grip_t [1 if the task has a gripper], phi_t [phi_dim], psi_t [psi_dim])
@@ -10,11 +11,16 @@ The same `Task.states` builds states for datasets, training feedback and rollout
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
+
+from envs.tasks.registry import TASKS, UnknownTaskError, get_task, register
+
+__all__ = ["TASKS", "Demos", "Episode", "StateLayout", "Task", "UnknownTaskError", "get_task", "register"]
 
 
 @dataclass(frozen=True)
@@ -96,14 +102,52 @@ class Episode:
 
 
 class Task:
-    """Base class of registered tasks. Subclasses set the class attributes and
-    implement phi, demos, episodes and evaluate."""
+    """Base class of registered tasks: one module in envs/tasks/ defines a subclass and
+    decorates it with `@register` (envs.tasks.registry imports every module there).
+
+    A subclass must set `name` and `layout` and implement `phi`, `episodes`, `evaluate`
+    and, for a task with its own demonstrations, `demos` and `config`. Everything else has
+    a default that fits a task with a goal position; override what differs. Nothing outside
+    envs/ compares a task's name: experiments/ and reports/ ask the task.
+
+    Identity and reports (class attributes):
+        name            registry key; also the MLflow metric prefix "<name>/..."
+        label           display name in tables and figures (default: name)
+        model_task      the task whose demonstrations train the model this task is evaluated
+                        with ("" or name: its own; an evaluation-only task names another)
+        step_seconds    wall-clock duration of one state transition on the robot
+        report_rank     position in reports (lower first; ties by name)
+        panels          report panels showing this task's rollouts: "tip_paths" (3D tip paths),
+                        "changing_goal" (adapted vs expert path after a goal switch),
+                        "circles" (drawn vs ideal circles)
+        primary_metric  per-rollout metric (a key of `evaluate`'s dict, lower is better) that
+                        summarises the error; the sweep's error objective minimises its mean
+        success_criterion  one line saying when an episode succeeds (for reports)
+        block_size      edge (m) of the blocks the task handles, None without blocks (figures)
+        episode_options constructor options of the model task's dataset that also shape this
+                        task's evaluation episodes (start range, horizon): a model trained with
+                        them is evaluated with them (see for_evaluation); others (the number of
+                        demos, training-only start mixes) leave the evaluation as it is
+    """
 
     name: str = ""
+    label: str = ""
     layout: StateLayout
-    model_task: str = ""  # the task whose demonstrations train the model this task is evaluated with
-    step_seconds: float = 0.1  # wall-clock duration of one state transition on the robot
+    model_task: str = ""
+    step_seconds: float = 0.1
+    report_rank: float = 100.0
+    panels: tuple[str, ...] = ("tip_paths",)
+    primary_metric: str = "final_distance"
+    success_criterion: str = ""
+    block_size: float | None = None
+    episode_options: tuple[str, ...] = ()
 
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        if "label" not in cls.__dict__:  # a subclass with its own name gets its own default label
+            cls.label = cls.name
+
+    # state ---------------------------------------------------------------------------
     def phi(self, tip_pos: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
         """phi from the tool-tip position (..., 3) and psi (..., psi_dim); differentiable."""
         raise NotImplementedError
@@ -127,12 +171,20 @@ class Task:
                             torch.as_tensor(demos.psi, dtype=torch.float64), kin)
         return s.numpy()
 
+    # demonstrations ------------------------------------------------------------------
     def demos(self, seed: int = 0) -> Demos:
         """Generate demonstrations with the IK expert (uncached; see envs.datasets)."""
         raise NotImplementedError
 
+    def config(self) -> dict[str, Any]:
+        """Everything that shapes the demonstrations (hashed for the dataset cache). Options
+        that shape only the evaluation stay out of it (they must not invalidate the cache)."""
+        raise NotImplementedError
+
+    # evaluation ----------------------------------------------------------------------
     def episodes(self, n: int, seed: int) -> list[Episode]:
-        """Evaluation episodes, deterministic per seed."""
+        """n evaluation episodes, deterministic per seed; different seeds give different
+        episodes where the task is random (the evaluation derives one seed per training seed)."""
         raise NotImplementedError
 
     def evaluate(self, q: np.ndarray, grip: np.ndarray | None, episode: Episode) -> dict[str, float]:
@@ -145,30 +197,65 @@ class Task:
         episode: what validation during training tracks. None where the task has none."""
         return None
 
-    def config(self) -> dict[str, Any]:
-        """Everything that shapes the demonstrations (hashed for the dataset cache)."""
-        raise NotImplementedError
+    @classmethod
+    def eval_options(cls, eval_cfg: Mapping[str, Any]) -> dict[str, Any]:
+        """Constructor options of this task read from a study's eval section (a dict); raises
+        ValueError (one line naming the field) on a bad value. Default: none."""
+        return {}
 
+    @classmethod
+    def for_evaluation(cls, data: Mapping[str, Any] | None = None,
+                       eval_cfg: Mapping[str, Any] | None = None) -> Task:
+        """This task as a model trained with the dataset options `data` (its model task's
+        constructor options) is evaluated on it: those of `episode_options` (so episodes come
+        from the trained start range and horizon), plus its own eval_options."""
+        options = {k: v for k, v in (data or {}).items() if k in cls.episode_options}
+        return cls(**options, **cls.eval_options(eval_cfg or {}))
 
-TASKS: dict[str, type[Task]] = {}
+    def episode_metrics(self, results: list[dict[str, float]], episodes: list[Episode]) -> dict[str, float]:
+        """Extra aggregate metrics over one evaluation (names without the task prefix, e.g. a
+        breakdown per episode group); the evaluation adds success and every metric's mean."""
+        return {}
 
+    def sweep_objective(self, objective: str, metrics: Mapping[str, float]) -> float:
+        """The value a sweep minimises, from the metrics of one evaluation (keys
+        "<name>/..."): "failure_rate" = 1 - success rate; "final_distance" (the historical
+        name of the error objective) = the mean of this task's primary_metric."""
+        if objective == "failure_rate":
+            return 1.0 - float(metrics[f"{self.name}/success_rate"])
+        if objective == "final_distance":
+            return float(metrics[f"{self.name}/{self.primary_metric}_mean"])
+        raise ValueError(f"unknown evaluation objective {objective!r}; known: failure_rate, final_distance")
 
-def register(cls: type[Task]) -> type[Task]:
-    if not cls.name:
-        raise ValueError(f"{cls.__name__} has no name")
-    TASKS[cls.name] = cls
-    return cls
+    # the expert on evaluation episodes (compute-time comparison, figures) ------------
+    def expert_episode(self, episode: Episode) -> tuple[np.ndarray, np.ndarray | None]:
+        """What the IK expert does in `episode`: joint path (T+1, 7) and gripper commands
+        (T+1,) or None. Default: the task's `expert_rollout`, where it has one."""
+        rollout = getattr(self, "expert_rollout", None)
+        if rollout is None:
+            raise NotImplementedError(f"task {self.name!r} has no expert for its episodes")
+        out = rollout(episode)
+        return (out[0], out[1]) if isinstance(out, tuple) else (out, None)
 
+    def expert_batch(self, episodes: list[Episode]) -> np.ndarray | None:
+        """The expert on several episodes in one batched IK solve (joint paths (B, T+1, 7)),
+        or None where the task has no batched expert (then only one-at-a-time is timed)."""
+        return None
 
-class UnknownTaskError(KeyError):
-    def __str__(self) -> str:
-        return self.args[0]
+    def expert_after_switch(self, episode: Episode, q_switch: np.ndarray):
+        """The expert's direct path from the configuration at a goal switch to the new goal
+        (q, or (q, grip)), for comparison figures; None where episodes have no switch."""
+        return None
 
+    # figures -------------------------------------------------------------------------
+    def landmarks(self) -> dict[str, tuple[float, float, float]]:
+        """Fixed points of the scene worth marking in figures (label -> base-frame xyz)."""
+        return {}
 
-def get_task(name: str, **overrides) -> Task:
-    """Instantiate a registered task; an unknown name lists the known ones."""
-    import envs.tasks  # noqa: F401  (registers the built-in tasks)
+    def scene_blocks(self) -> list[tuple[float, float, float]]:
+        """Bottom centres of the blocks standing in the scene when an episode starts."""
+        return []
 
-    if name not in TASKS:
-        raise UnknownTaskError(f"unknown task {name!r}; known tasks: {', '.join(sorted(TASKS))}")
-    return TASKS[name](**overrides)
+    def describe_paths(self, psis: list[np.ndarray]) -> str:
+        """A few words on a set of drawn paths (their psi rows), appended to figure titles."""
+        return ""

@@ -14,11 +14,15 @@ Documented choices (base frame; the table top is at z = -0.15):
   turns (unwrapped angle swept about the centre / 2 pi).
 - success: max radial error < 10% of r and at least 0.95 of a turn drawn (a path that
   stays at the start point has no radial error but draws nothing).
+- evaluation: episodes cycle through `eval_radii` (constructor option; a study sets it from
+  its eval section's circle_radii + circle_unseen_radii, see `eval_options`). Circle
+  episodes are deterministic (one start per radius): every seed gets the same ones.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -37,6 +41,8 @@ DEMO_RADII = tuple(np.round(np.linspace(0.05, 0.20, 10), 6))
 EVAL_RADII = (0.05, 0.10, 0.15, 0.075, 0.125)  # seen radii of the paper, then unseen ones
 MAX_ERROR_PCT = 10.0
 MIN_TURNS = 0.95
+MAX_EVAL_RADIUS = 0.5  # m; larger circles leave the arm's reach
+GROUP_METRICS = ("radial_rmse", "max_radial_error_pct", "closure", "success")  # reported per radius
 
 
 PROFILES = ("min-jerk", "constant")  # how the angle advances along the turn
@@ -74,19 +80,46 @@ def circle_metrics(tip: np.ndarray, radius: float, centre=CENTRE) -> dict[str, f
 
 @register
 class Circle(Task):
+    """Draw one full circle of the radius psi in a fixed horizontal plane."""
+
     name = "circle"
     model_task = "circle"
     step_seconds = STEP_SECONDS
+    report_rank = 0
+    episode_options = ("steps",)
+    panels = ("circles", "tip_paths")
+    primary_metric = "radial_rmse"
+    success_criterion = f"max radial error < {MAX_ERROR_PCT:g}% of r and >= {MIN_TURNS:g} of a turn drawn"
     layout = StateLayout(phi_dim=3, psi_dim=1, phi_names=("tip_x", "tip_y", "tip_z"), psi_names=("radius",))
 
-    def __init__(self, radii: tuple[float, ...] = DEMO_RADII, steps: int = STEPS, profile: str = "min-jerk"):
+    def __init__(self, radii: tuple[float, ...] = DEMO_RADII, steps: int = STEPS, profile: str = "min-jerk",
+                 eval_radii: tuple[float, ...] = EVAL_RADII):
+        """radii: the demonstrated radii (m); eval_radii: the radii evaluation episodes cycle
+        through (evaluation only: not in config(), so it does not touch the dataset cache)."""
         if not radii or min(radii) <= 0:
             raise ValueError(f"radii must be positive, got {radii}")
         if profile not in PROFILES:
             raise ValueError(f"profile must be one of {', '.join(PROFILES)}, got {profile!r}")
+        if not eval_radii or not all(0.0 < r <= MAX_EVAL_RADIUS for r in eval_radii):
+            raise ValueError(f"eval_radii must lie in 0 < r <= {MAX_EVAL_RADIUS} m, got {eval_radii}")
         self.radii = tuple(float(r) for r in radii)
         self.steps = int(steps)
         self.profile = profile
+        self.eval_radii = tuple(float(r) for r in eval_radii)
+
+    @classmethod
+    def eval_options(cls, eval_cfg: Mapping[str, Any]) -> dict[str, Any]:
+        """eval_radii = the eval section's circle_radii (seen in the paper) + circle_unseen_radii."""
+        keys = [k for k in ("circle_radii", "circle_unseen_radii") if k in eval_cfg]
+        if not keys:
+            return {}
+        radii = [r for k in keys for r in eval_cfg[k]]
+        for r in radii:
+            if not 0.0 < r <= MAX_EVAL_RADIUS:
+                raise ValueError(f"eval.circle_radii: radius {r!r} m out of range; allowed: 0 < r <= {MAX_EVAL_RADIUS}")
+        if not radii:
+            raise ValueError("eval.circle_radii: no radius to evaluate; give at least one")
+        return {"eval_radii": tuple(float(r) for r in radii)}
 
     def config(self) -> dict[str, Any]:
         return {"task": self.name, "radii": self.radii, "steps": self.steps, "centre": CENTRE,
@@ -130,14 +163,42 @@ class Circle(Task):
         tip = physics_scene().play(q, None, self.step_seconds).tip
         return circle_metrics(tip, radius)
 
-    def episodes(self, n: int, seed: int, radii: tuple[float, ...] = EVAL_RADII) -> list[Episode]:
-        """n episodes cycling through `radii` (default 5, 10, 15 cm and the unseen 7.5,
-        12.5 cm), each starting at the expert's start configuration for its radius.
+    def episodes(self, n: int, seed: int, radii: tuple[float, ...] | None = None) -> list[Episode]:
+        """n episodes cycling through `radii` (default: eval_radii, i.e. 5, 10, 15 cm and the
+        unseen 7.5, 12.5 cm), each starting at the expert's start configuration for its radius.
         Circle episodes are deterministic; `seed` is accepted for the common interface."""
+        radii = self.eval_radii if radii is None else radii
         chosen = [float(radii[i % len(radii)]) for i in range(n)]
         starts = {r: q0 for r, q0 in zip(sorted(set(chosen)), self._starts(sorted(set(chosen))), strict=True)}
         return [Episode(q0=starts[r], psi=np.full((self.steps + 1, 1), r), horizon=self.steps,
-                        info={"radius": r}) for r in chosen]
+                        info={"radius": r, "center": list(CENTRE)}) for r in chosen]
+
+    def episode_metrics(self, results: list[dict[str, float]], episodes: list[Episode]) -> dict[str, float]:
+        """Per radius r (cm): "r<r>/<metric>" means of GROUP_METRICS and "r<r>/n_rollouts"."""
+        out: dict[str, float] = {}
+        radii = [float(ep.info["radius"]) for ep in episodes]
+        for r in sorted(set(radii)):
+            group = [res for res, rr in zip(results, radii, strict=True) if rr == r]
+            tag = f"r{round(r * 100, 1):g}"
+            for k in GROUP_METRICS:
+                vals = [g[k] for g in group if k in g and np.isfinite(g[k])]
+                if vals:
+                    out[f"{tag}/{k}"] = float(np.mean(vals))
+            out[f"{tag}/n_rollouts"] = float(len(group))
+        return out
+
+    def expert_episode(self, episode: Episode) -> tuple[np.ndarray, None]:
+        return self.expert([float(episode.info["radius"])])[0][0], None
+
+    def expert_batch(self, episodes: list[Episode]) -> np.ndarray:
+        return self.expert([float(ep.info["radius"]) for ep in episodes])[0]
+
+    def landmarks(self) -> dict[str, tuple[float, float, float]]:
+        return {"centre": CENTRE}
+
+    def describe_paths(self, psis: list[np.ndarray]) -> str:
+        radii = sorted({float(p[0, 0]) for p in psis})
+        return f"radii {100 * radii[0]:g}-{100 * radii[-1]:g} cm" if radii else ""
 
     def _starts(self, radii) -> np.ndarray:
         paths = np.stack([circle_path(r, self.steps)[:1] for r in radii])

@@ -48,7 +48,7 @@ START_JOINT_RANGE = 0.1
 START_BOX = ((0.35, 0.80), (-0.15, 0.45), (-0.05, 0.30))  # (x, y, z) ranges of the start tip (m)
 GOAL_BOX = ((0.45, 0.80), (-0.10, 0.40), (-0.05, 0.20))  # (x, y, z) ranges of the goal (m)
 MIN_DISTANCE = 0.10  # m between the start tip and the goal (and between the two goals of a switch)
-SUCCESS_RADIUS = 0.05  # m
+SUCCESS_RADIUS = 0.05  # m: the reacher's success criterion, defined here only (others import it)
 STEP_SECONDS = 0.1
 DISTANCE_FOR_MAX_STEPS = 0.6  # m: paths this long or longer get the most steps
 
@@ -67,9 +67,14 @@ def _in_box(x: np.ndarray, box) -> np.ndarray:
 
 @register
 class Reacher(Task):
+    """Bring the tool tip from a random start configuration to a random goal."""
+
     name = "reacher"
     model_task = "reacher"
     step_seconds = STEP_SECONDS
+    report_rank = 10
+    episode_options = ("start_joint_range", "min_steps", "max_steps")
+    success_criterion = f"tool tip within {SUCCESS_RADIUS * 100:g} cm of the goal at the end (physics)"
     layout = StateLayout(
         phi_dim=3, psi_dim=3,
         phi_names=("tip_minus_goal_x", "tip_minus_goal_y", "tip_minus_goal_z"),
@@ -199,6 +204,14 @@ class Reacher(Task):
         return [Episode(q0=q0[i], psi=np.repeat(goals[i][None], horizon + 1, axis=0), horizon=horizon,
                         info={"goal": goals[i].tolist()}) for i in range(n)]
 
+    def expert_episode(self, episode: Episode) -> tuple[np.ndarray, None]:
+        return self.expert_trajectory(episode.q0, np.asarray(episode.info["goal"])), None
+
+    def expert_batch(self, episodes: list[Episode]) -> np.ndarray:
+        """One IK solve for every episode's straight line to its goal."""
+        q0 = np.stack([ep.q0 for ep in episodes])
+        return self.expert(q0, np.array([ep.info["goal"] for ep in episodes]))[0]
+
     def kinematic_error(self, tip: np.ndarray, episode: Episode) -> float:
         """Distance of the path's last point to the (last) goal."""
         return float(np.linalg.norm(tip[-1] - np.asarray(episode.psi[-1])))
@@ -214,7 +227,11 @@ class ReacherChangingGoal(Reacher):
     """Reacher whose goal switches halfway through a rollout 1.5x the longest demo."""
 
     name = "reacher-changing-goal"
+    label = "changing-goal reacher"
     model_task = "reacher"
+    report_rank = 11
+    panels = ("tip_paths", "changing_goal")
+    success_criterion = f"tool tip within {SUCCESS_RADIUS * 100:g} cm of the new goal at the end (physics)"
 
     @property
     def horizon(self) -> int:
@@ -253,6 +270,12 @@ class ReacherChangingGoal(Reacher):
         second = self.expert_after_switch(episode, first[-1])
         q = np.concatenate([first, second[1:]])
         return np.concatenate([q, np.repeat(q[-1:], H + 1 - len(q), axis=0)])
+
+    def expert_episode(self, episode: Episode) -> tuple[np.ndarray, None]:
+        return self.expert_rollout(episode), None
+
+    def expert_batch(self, episodes: list[Episode]) -> None:
+        return None  # two plans per episode (before and after the switch): timed one at a time only
 
     def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
         q = check_trajectory(q)

@@ -1,0 +1,126 @@
+"""The LSTM stack step of stm.cell for a pack of K models with independent weights.
+
+Per layer the K models' weights are stacked on a leading model axis, (K, I, 4H), and a
+step is one batched matmul per layer (torch.baddbmm) for all K models: the same
+forward with local derivatives, hand-written backward and deferred weight gradient as
+stm.cell (whose step functions take either rank), so a pack of K costs about what one
+model costs in per-op overhead, and K times its arithmetic.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from stm.cell import _Deferred, _StackStep, _Weights
+
+# nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), the g rows doubled (one sigmoid for all gates), as in stm.cell
+
+
+def _gate_order(H: int) -> tuple[torch.Tensor, torch.Tensor]:
+    order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
+    scale = torch.cat([torch.ones(3 * H), torch.full((H,), 2.0)])
+    return order, scale
+
+
+class PackedStackStepper:
+    """Steps the LSTM stacks of K models one time step at a time (one per unroll, inside the
+    autograd graph). `lstm` is a list per layer of (w_ih (K, 4H, I), w_hh (K, 4H, H),
+    b_ih (K, 4H), b_hh (K, 4H)), nn.LSTM's layout with a leading model axis. With in_std
+    ((D,) or (K, D)) the steps take centred inputs and fold the division into the first
+    layer's input weights, as stm.cell.StackStepper does."""
+
+    def __init__(self, lstm: list[tuple[torch.Tensor, ...]], in_std: torch.Tensor | None = None):
+        H = lstm[0][1].shape[-1]
+        self.layers = len(lstm)
+        self.store = _Deferred(self.layers)
+        order, scale = _gate_order(H)
+        wb = []
+        for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(lstm):
+            if k == 0 and in_std is not None:
+                w_ih = w_ih / (in_std if in_std.dim() == 1 else in_std[:, None, :])
+            w = torch.cat([w_ih, w_hh], dim=2)[:, order] * scale[:, None]  # (K, 4H, I + H)
+            wb += [w.transpose(1, 2), ((b_ih + b_hh)[:, order] * scale).unsqueeze(1)]
+        self.wb = _Weights.apply(self.store, *wb)
+
+    def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
+                 ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """x (K, B, D), per-layer h, c (K, B, H) -> the next per-layer h, c (top layer last)."""
+        out = _StackStep.apply(x, self.store, *h, *c, *self.wb)
+        return list(out[: self.layers]), list(out[self.layers:])
+
+    def zeros(self, x: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Zero initial (h, c) per layer for inputs shaped like x (K, B, D)."""
+        H = self.wb[0].shape[-1] // 4
+        z = x.new_zeros(x.shape[0], x.shape[1], H)
+        return [z] * self.layers, [z] * self.layers
+
+
+class _LayerSeq(torch.autograd.Function):
+    """n time steps of ONE layer for K models: inputs (K, B, n, I) known in advance (ground
+    truth, or the layer below's outputs), so their projection is one batched matmul for all
+    steps, and only the recurrent part is stepped. One autograd node per layer and chunk; the
+    backward steps back through time, then computes the input and weight gradients in one
+    batched matmul each. Weights as the stepper's: w_t (K, I + H, 4H) (gates i, f, o, 2g),
+    b (K, 1, 4H)."""
+
+    @staticmethod
+    def forward(ctx, x, h0, c0, w_t, b):
+        K, B, n, I = x.shape
+        H = h0.shape[-1]
+        w_x, w_h = w_t[:, :I], w_t[:, I:].contiguous()
+        proj = torch.baddbmm(b, x.reshape(K, B * n, I), w_x).view(K, B, n, 4 * H)
+        h, c = h0, c0
+        hs, gds, odts, fs = [], [], [], []
+        for t in range(n):
+            sig = torch.sigmoid(torch.baddbmm(proj[:, :, t], h, w_h))
+            i, f, o = sig[..., :H], sig[..., H: 2 * H], sig[..., 2 * H: 3 * H]
+            g = sig[..., 3 * H:] * 2.0 - 1.0
+            c_new = torch.addcmul(f * c, i, g)
+            tc = torch.tanh(c_new)
+            h_new = o * tc
+            gds.append(torch.cat([g, c, tc, i * 2.0], -1) * torch.addcmul(sig, sig, sig, value=-1.0))
+            odts.append(torch.addcmul(o, h_new, tc, value=-1.0))
+            fs.append(f)
+            hs.append(h_new)
+            h, c = h_new, c_new
+        out = torch.stack(hs, 2)
+        ctx.save_for_backward(x, h0, w_t, out)
+        ctx.local = (gds, odts, fs)
+        return out, h, c
+
+    @staticmethod
+    def backward(ctx, g_out, g_hn, g_cn):
+        x, h0, w_t, out = ctx.saved_tensors
+        gds, odts, fs = ctx.local
+        K, B, n, I = x.shape
+        H = h0.shape[-1]
+        w_hT = w_t[:, I:].transpose(1, 2).contiguous()
+        dh_rec = g_hn if g_hn is not None else torch.zeros_like(h0)
+        dc = g_cn if g_cn is not None else torch.zeros_like(h0)
+        dgs = [None] * n
+        for t in reversed(range(n)):
+            dh = dh_rec if g_out is None else dh_rec + g_out[:, :, t]
+            dc = torch.addcmul(dc, odts[t], dh)
+            dgates = torch.cat([dc, dc, dh, dc], -1).mul_(gds[t])
+            dgs[t] = dgates
+            dc = dc * fs[t]
+            dh_rec = torch.bmm(dgates, w_hT)
+        dg = torch.stack(dgs, 2).view(K, B * n, 4 * H)
+        h_prev = torch.cat([h0.unsqueeze(2), out[:, :, :-1]], 2).reshape(K, B * n, H)
+        xh = torch.cat([x.reshape(K, B * n, I), h_prev], -1)
+        dw = torch.bmm(xh.transpose(1, 2), dg)
+        db = dg.sum(1, keepdim=True)
+        dx = torch.bmm(dg, w_t[:, :I].transpose(1, 2)).view(K, B, n, I) if ctx.needs_input_grad[0] else None
+        return dx, dh_rec, dc, dw, db
+
+
+def layer_sequence(stepper: PackedStackStepper, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
+                   ) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
+    """n known inputs x (K, B, n, D) (centred, as the stepper's) through the whole stack, layer
+    by layer: top hidden states (K, B, n, H) and the per-layer (h, c) after the last step."""
+    h_out, c_out = [], []
+    for k in range(stepper.layers):
+        x, hn, cn = _LayerSeq.apply(x, h[k], c[k], stepper.wb[2 * k], stepper.wb[2 * k + 1])
+        h_out.append(hn)
+        c_out.append(cn)
+    return x, h_out, c_out

@@ -1,0 +1,184 @@
+"""Packed training (stm.packed_train) trains each seed as stm.train.train trains it alone: same
+loss curve, weights and rollouts, for the four variants; a diverging seed leaves the pack
+without disturbing the others; each seed checkpoints and resumes on its own.
+
+Tolerances: the pack computes each model's maths with batched matmuls (torch.bmm/baddbmm)
+and its own LSTM step where the single trainer uses torch.mm and oneDNN's fused LSTM, so
+single ops differ in the last bit (float32 rounding, ~1e-7 relative). Adam turns a relative
+gradient difference into at most about the same relative difference of an update of size
+lr, so after N steps weights differ by ~N * lr * 1e-6 at worst; measured: <= 1e-6 after 8
+steps at lr 3e-3. Asserted: losses within 1e-5 (relative and absolute), weights within
+2e-5 absolute, rollout joint angles within 1e-4 rad after 11 closed-loop steps. Different
+seeds differ by > 1e-3, so the checks can fail."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
+
+from stm.checkpoint import load_checkpoint
+from stm.config import ModelConfig, TrainConfig
+from stm.packed import PackedSTM
+from stm.packed_rollout import generate_packed
+from stm.packed_train import check_packable, train_packed
+from stm.registry import VARIANTS
+from stm.rollout import generate
+from stm.train import train
+
+TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
+BASE = TrainConfig(iters=8, batch_size=4, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0)
+SEEDS = (0, 1, 2)
+LOSS_TOL, WEIGHT_TOL, ROLLOUT_TOL = 1e-5, 2e-5, 1e-4
+
+
+@pytest.fixture(scope="module")
+def toy():
+    task = ToyReach(n_demos=6, min_steps=8, max_steps=11, gripper=True)
+    return task, task.demos(0)
+
+
+def _configs(variant: str, **train_overrides):
+    model, base = VARIANTS[variant].configs(TINY, TrainConfig.from_dict({**BASE.to_dict(), **train_overrides}))
+    return model, [TrainConfig.from_dict({**base.to_dict(), "seed": s}) for s in SEEDS]
+
+
+def _max_weight_diff(a, b) -> float:
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    return max((sa[k] - sb[k]).abs().max().item() for k in sa)
+
+
+def _assert_same_run(single, packed):
+    np.testing.assert_allclose(packed.history["train/loss"], single.history["train/loss"], rtol=LOSS_TOL,
+                               atol=LOSS_TOL)
+    np.testing.assert_allclose(packed.history["train/grad_norm"], single.history["train/grad_norm"], rtol=1e-4)
+    assert packed.iterations == single.iterations
+    assert _max_weight_diff(packed.model, single.model) < WEIGHT_TOL
+
+
+@pytest.mark.parametrize("variant,extra", [
+    ("lstm", {}), ("ac-lstm", {"tf_warmup": 2}), ("lstm-mdn", {}), ("ac-lstm-mdn", {"tf_warmup": 2}),
+    ("ac-lstm-mdn", {"feedback": "sample", "input_noise": 0.1}),  # each seed's own random stream
+    ("ac-lstm-mdn", {"u": 3, "v": 2, "grad_clip": 0.05}),  # layer-sequence chunks; clipping active
+], ids=["lstm", "ac-lstm", "lstm-mdn", "ac-lstm-mdn", "ac-lstm-mdn-sample-noise", "ac-lstm-mdn-u3-clipped"])
+def test_packed_training_equals_separate_training(toy, variant, extra):
+    task, demos = toy
+    model_cfg, cfgs = _configs(variant, **extra)
+    singles = [train(model_cfg, c, task, demos) for c in cfgs]
+    packed = train_packed(model_cfg, cfgs, task, demos)
+    for s, p in zip(singles, packed, strict=True):
+        assert p.failure is None
+        _assert_same_run(s, p)
+    assert _max_weight_diff(packed[0].model, packed[1].model) > 1e-3  # seeds differ: the checks can fail
+    # rollouts of the K models batched equal each model's own rollouts
+    episodes = task.episodes(5, 7)
+    mode = "sample" if extra.get("feedback") == "sample" else "component_mean"
+    batched = generate_packed([p.model for p in packed], task, episodes, feedback=mode, seed=3)
+    for s, ro in zip(singles, batched, strict=True):
+        alone = generate(s.model, task, episodes, feedback=mode, seed=3)
+        np.testing.assert_allclose(ro.q, alone.q, atol=ROLLOUT_TOL, rtol=0)
+        np.testing.assert_array_equal(ro.grip, alone.grip)
+
+
+def test_seeds_at_different_schedule_positions(toy):
+    """Per-seed tf_warmup, (u, v), iters, lr and clipping: seeds in different schedule groups,
+    finishing at different iterations, train as alone."""
+    task, demos = toy
+    model_cfg, cfgs = _configs("ac-lstm-mdn")
+    cfgs = [TrainConfig.from_dict({**c.to_dict(), **o}) for c, o in
+            zip(cfgs, [{"tf_warmup": 0, "lr": 1e-2}, {"tf_warmup": 5, "grad_clip": 0.05}, {"u": 1, "v": 3, "iters": 5}],
+                strict=True)]
+    packed = train_packed(model_cfg, cfgs, task, demos)
+    for c, p in zip(cfgs, packed, strict=True):
+        _assert_same_run(train(model_cfg, c, task, demos), p)
+
+
+def test_a_diverging_seed_leaves_the_pack_and_the_others_go_on(toy, tmp_path, monkeypatch):
+    task, demos = toy
+    model_cfg, cfgs = _configs("ac-lstm-mdn", checkpoint_every=2)
+    holder = {}
+    original = PackedSTM.from_models
+
+    def capture(models):
+        holder["pack"] = original(models)
+        return holder["pack"]
+
+    monkeypatch.setattr(PackedSTM, "from_models", staticmethod(capture))
+
+    def sabotage(k, iteration, metrics):
+        if k == 1 and iteration == 5:  # poison seed 1's weights: its iteration 6 computes a NaN loss
+            with torch.no_grad():
+                for p in holder["pack"].stacked:
+                    p[1].fill_(math.nan)
+
+    cfgs = [TrainConfig.from_dict({**c.to_dict(), "log_every": 1}) for c in cfgs]
+    paths = [tmp_path / f"s{s}.pt" for s in SEEDS]
+    packed = train_packed(model_cfg, cfgs, task, demos, checkpoint_paths=paths, on_metrics=sabotage)
+    bad = packed[1]
+    assert bad.failure is not None and bad.failure.iteration == 6 and "non-finite loss" in str(bad.failure)
+    assert bad.iterations == 5 and len(bad.history["train/loss"]) == 5
+    ckpt = load_checkpoint(paths[1])  # the last good one
+    assert ckpt["iteration"] == 4 and all(torch.isfinite(t).all() for t in ckpt["model"].values())
+    for k in (0, 2):  # the others as if trained alone
+        assert packed[k].failure is None
+        _assert_same_run(train(model_cfg, cfgs[k], task, demos), packed[k])
+        assert load_checkpoint(paths[k])["iteration"] == 8
+
+
+def test_each_seed_checkpoints_and_resumes_on_its_own(toy, tmp_path):
+    task, demos = toy
+    model_cfg, cfgs = _configs("ac-lstm-mdn", checkpoint_every=3, feedback="sample")
+    paths = [tmp_path / f"s{s}.pt" for s in SEEDS]
+    full = train_packed(model_cfg, cfgs, task, demos)
+    # seed 0 stopped after 3 iterations by a packed job, seed 1 after 5 by a single-model job, seed 2 never ran
+    train_packed(model_cfg, [TrainConfig.from_dict({**cfgs[0].to_dict(), "iters": 3})], task, demos,
+                 checkpoint_paths=paths[:1])
+    train(model_cfg, TrainConfig.from_dict({**cfgs[1].to_dict(), "iters": 5}), task, demos, checkpoint_path=paths[1])
+    seen = []
+    resumed = train_packed(model_cfg, cfgs, task, demos, checkpoint_paths=paths,
+                           on_checkpoint=lambda k, path, it: seen.append((k, it)))
+    assert sorted(seen) == [(0, 6), (0, 8), (1, 6), (1, 8), (2, 3), (2, 6), (2, 8)]
+    for f, r in zip(full, resumed, strict=True):
+        _assert_same_run(f, r)
+    # a packed checkpoint is an ordinary one: the single trainer resumes it
+    alone = train(model_cfg, TrainConfig.from_dict({**cfgs[2].to_dict(), "iters": 10}), task, demos,
+                  checkpoint_path=paths[2])
+    ref = train(model_cfg, TrainConfig.from_dict({**cfgs[2].to_dict(), "iters": 10}), task, demos)
+    _assert_same_run(ref, alone)
+
+
+def test_validation_stops_one_seed_early(toy):
+    task, demos = toy
+    model_cfg, cfgs = _configs("ac-lstm-mdn", val_every=2, val_episodes=2)
+    calls = []
+    packed = train_packed(model_cfg, cfgs, task, demos,
+                          on_validation=lambda k, it, value: calls.append((k, it)) or (k == 0 and it >= 4))
+    assert [p.iterations for p in packed] == [4, 8, 8] and packed[0].stopped_early
+    assert sorted(calls) == sorted([(0, 2), (0, 4)] + [(k, it) for k in (1, 2) for it in (2, 4, 6, 8)])
+    assert len(packed[1].history["val/metric"]) == 4
+
+
+def test_unpackable_configs_are_refused():
+    with pytest.raises(ValueError, match="share one model config"):
+        check_packable([TINY, ModelConfig(hidden_size=7)], [BASE, BASE])
+    with pytest.raises(ValueError, match="differ in feedback"):
+        check_packable([TINY, TINY], [BASE, TrainConfig.from_dict({**BASE.to_dict(), "feedback": "sample"})])
+    check_packable([TINY, TINY], [BASE, TrainConfig.from_dict({**BASE.to_dict(), "seed": 4, "lr": 1e-2})])
+
+
+def test_bench_reports_packed_speedups(monkeypatch, capsys):
+    """`python -m stm.bench --json` gives each training entry packed_k and the packed speedups,
+    (K x one model's ms/iter) / (the pack's ms/iter), here at a tiny size (the numbers are not checked)."""
+    from stm import bench
+
+    monkeypatch.setitem(bench.SIZES, "reacher", dict(hidden=8, mixtures=2, batch=4, steps=6, gripper=False))
+    out = bench.main(["--json", "--sizes", "reacher", "--rounds", "1", "--reps", "1", "--no-rollouts"])
+    entry = out["training"][0]
+    ms = entry["ms_per_iter"]
+    assert entry["size"] == "reacher" and entry["packed_k"] == 3
+    for k in ("tf", "ac_u2v2", "ac_u5v5"):
+        assert entry[f"packed_speedup_{k}"] == pytest.approx(3 * ms[k] / ms[f"packed_{k}"], rel=0.02)
+    assert entry["packed_speedup_ac"] == min(entry["packed_speedup_ac_u2v2"], entry["packed_speedup_ac_u5v5"])
+    assert '"packed_speedup_ac"' in capsys.readouterr().out
