@@ -108,15 +108,20 @@ def get_or_create_experiment(client: Client, name: str) -> str:
         if db is not None:  # keep artifacts beside the db file, not in whatever cwd a later run uses
             location = (db.resolve().parent / "mlartifacts" / name).as_uri()
         try:
-            exp = client.get_experiment(client.create_experiment(name, artifact_location=location))
+            exp = client.get_experiment(client.create_experiment(name, artifact_location=location,
+                                                                 tags={KIND_TAG: EXPERIMENT_KIND}))
         except Exception:
             exp = client.get_experiment_by_name(name)  # created concurrently
             if exp is None:
                 raise
     if exp.lifecycle_stage == "deleted":
         client.restore_experiment(exp.experiment_id)
-    if exp.tags.get(KIND_TAG) != EXPERIMENT_KIND:
-        client.set_experiment_tag(exp.experiment_id, KIND_TAG, EXPERIMENT_KIND)
+    if exp.tags.get(KIND_TAG) != EXPERIMENT_KIND:  # an experiment created before the kind was set
+        try:
+            client.set_experiment_tag(exp.experiment_id, KIND_TAG, EXPERIMENT_KIND)
+        except Exception:  # another process set it at the same moment (a unique-key violation)
+            if client.get_experiment(exp.experiment_id).tags.get(KIND_TAG) != EXPERIMENT_KIND:
+                raise
     return exp.experiment_id
 
 
