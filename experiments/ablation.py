@@ -165,12 +165,12 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     try:
         if workers == 1:
             for cell, run_id in todo:
-                got = claimed_cell(cell.to_dict(), uri, run_id, interactive, level, TORCH_THREADS, *claim, False)
+                got = claimed_cell(cell, uri, run_id, interactive, level, TORCH_THREADS, *claim, False)
                 _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
         else:
             _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, held)
         for cell, run_id in held:  # cells another command of this study trains: wait for them
-            got = claimed_cell(cell.to_dict(), uri, run_id, interactive, level, TORCH_THREADS, *claim, True)
+            got = claimed_cell(cell, uri, run_id, interactive, level, TORCH_THREADS, *claim, True)
             _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
     except KeyboardInterrupt:
         # interrupted cells are KILLED with their last checkpoint artifact: a re-run resumes them
@@ -221,7 +221,7 @@ def _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, h
     try:
         with worker_pool(workers) as pool:
             for cell, run_id in todo:
-                fut = pool.submit(claimed_cell, cell.to_dict(), uri, run_id, False, level, TORCH_THREADS, *claim,
+                fut = pool.submit(claimed_cell, cell, uri, run_id, False, level, TORCH_THREADS, *claim,
                                   False)
                 pending[fut] = (cell, run_id)
             for fut in as_completed(pending):

@@ -1,4 +1,4 @@
-"""Cells of an ablation study: one (training task, variant, seed) with its fully resolved
+"""Cells of an ablation study: one (training task, variant, seed) with its fully resolved, typed
 model/train/eval configs and the hash that identifies it across re-runs."""
 
 from __future__ import annotations
@@ -7,7 +7,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from experiments.config import StudyConfig, config_hash, evaluation_tasks
+from experiments.config import EvalConfig, StudyConfig, config_hash, evaluation_tasks
+from stm.config import ModelConfig, TrainConfig
 
 
 @dataclass(frozen=True)
@@ -15,9 +16,9 @@ class Cell:
     task: str  # training task
     variant: str
     seed: int
-    model: dict[str, Any]  # resolved stm ModelConfig (variant applied)
-    train: dict[str, Any]  # resolved stm TrainConfig (variant applied, seed set)
-    eval: dict[str, Any]
+    model: ModelConfig  # variant applied
+    train: TrainConfig  # variant applied, seed set
+    eval: EvalConfig
     eval_tasks: tuple[str, ...]
     profile: str
     study_name: str
@@ -31,12 +32,15 @@ class Cell:
     @property
     def resolved(self) -> dict[str, Any]:
         """Everything that shapes this cell's results: hashed, logged as params and config.json."""
-        out = {"task": self.task, "variant": self.variant, "seed": self.seed, "model": self.model,
-               "train": self.train, "eval": self.eval, "eval_tasks": list(self.eval_tasks),
+        out = {"task": self.task, "variant": self.variant, "seed": self.seed, "model": self.model.to_dict(),
+               "train": self.train.to_dict(), "eval": self.eval_dict(), "eval_tasks": list(self.eval_tasks),
                "dataset_seed": self.dataset_seed}
         if self.data:  # absent when default: cells of profiles without data options keep their hashes
             out["data"] = self.data
         return out
+
+    def eval_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self.eval).items()}
 
     @property
     def config_hash(self) -> str:
@@ -47,30 +51,29 @@ class Cell:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Cell:
-        return cls(**{**d, "eval_tasks": tuple(d["eval_tasks"])})
+        """The inverse of to_dict (plain data, e.g. JSON)."""
+        return cls(**{**d, "model": ModelConfig.from_dict(d["model"]), "train": TrainConfig.from_dict(d["train"]),
+                      "eval": EvalConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d["eval"].items()}),
+                      "eval_tasks": tuple(d["eval_tasks"])})
 
 
-def resolve_stm_configs(cfg: StudyConfig, task: str, variant: str, seed: int):
-    """(ModelConfig, TrainConfig) for one cell: defaults <- profile <- per-task <- variant."""
-    from stm.config import ModelConfig, TrainConfig
+def resolve_stm_configs(cfg: StudyConfig, task: str, variant: str, seed: int) -> tuple[ModelConfig, TrainConfig]:
+    """(ModelConfig, TrainConfig) for one cell: the task's resolved configs <- seed <- variant."""
     from stm.registry import get_variant
 
-    model_over, train_over = cfg.stm_dicts(task)
-    model = ModelConfig.from_dict({**ModelConfig().to_dict(), **model_over})
-    train = TrainConfig.from_dict({**TrainConfig().to_dict(), **train_over, "seed": seed})
-    return get_variant(variant).configs(model, train)
+    tc = cfg.task_config(task)
+    return get_variant(variant).configs(tc.model, dataclasses.replace(tc.train, seed=seed))
 
 
 def build_cells(cfg: StudyConfig) -> list[Cell]:
     study_name = cfg.resolved_study_name()
-    eval_dict = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(cfg.eval).items()}
     cells = []
     for task in cfg.tasks:
         eval_tasks = tuple(evaluation_tasks(task))
         for variant in cfg.variants:
             for seed in range(cfg.seeds):
                 model, train = resolve_stm_configs(cfg, task, variant, seed)
-                cells.append(Cell(task=task, variant=variant, seed=seed, model=model.to_dict(),
-                                  train=train.to_dict(), eval=eval_dict, eval_tasks=eval_tasks,
-                                  profile=cfg.profile, study_name=study_name, data=cfg.data_options(task)))
+                cells.append(Cell(task=task, variant=variant, seed=seed, model=model, train=train, eval=cfg.eval,
+                                  eval_tasks=eval_tasks, profile=cfg.profile, study_name=study_name,
+                                  data=cfg.data_options(task)))
     return cells

@@ -23,6 +23,7 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
+from experiments.cells import Cell
 from experiments.tracking import Client, log_metrics, set_tags
 
 log = logging.getLogger(__name__)
@@ -125,14 +126,14 @@ class _Beat:
             log.warning("could not release the claim on run %s", self.run_id)
 
 
-def claimed_cell(cell_dict: dict, uri: str, run_id: str, progress: bool, level: int, threads: int | None,
+def claimed_cell(cell: Cell, uri: str, run_id: str, progress: bool, level: int, threads: int | None,
                  beat: float, grace: float, wait: bool) -> Claimed:
     """Run the cell in its run if this process wins the claim (see the module docstring)."""
     from experiments.worker import CellResult, run_cell
 
     logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
     client, me, announced = Client(uri), holder_id(), False
-    key = f"{cell_dict['task']}/{cell_dict['variant']}/seed{cell_dict['seed']}"
+    key = cell.key
     while True:
         run = client.get_run(run_id)
         if run.info.status == "FINISHED":
@@ -151,11 +152,11 @@ def claimed_cell(cell_dict: dict, uri: str, run_id: str, progress: bool, level: 
         time.sleep(beat)
     beater = _Beat(client, run_id, n, beat)
     try:
-        res = run_cell(cell_dict, uri, run_id, progress, level, threads)
+        res = run_cell(cell, uri, run_id, progress, level, threads)
     finally:
         beater.release()
     if res.status == "FINISHED":
-        log_headline(client, run_id, cell_dict["task"], res.metrics)
+        log_headline(client, run_id, cell.task, res.metrics)
     return Claimed("ran", res)
 
 

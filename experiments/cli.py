@@ -28,7 +28,8 @@ def _one_line(message: str) -> str:
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--profile", default="quick", help=f"config profile: {', '.join(available_profiles())}")
+    p.add_argument("--profile", default="quick", help=f"config profile: {', '.join(available_profiles())}, "
+                   "or the path of your own TOML file (see experiments/profiles/)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                    help="override any config field, e.g. --set train.iters=2000 --set per_task.pick-place.model."
                         "mixtures=20 (repeatable)")
@@ -79,18 +80,12 @@ def _split(values: list[str] | None) -> list[str] | None:
 
 
 def load_config(args: argparse.Namespace) -> StudyConfig:
-    """The validated config of a command, including a dry resolution of every cell/trial so
-    that variant/schedule conflicts are reported before anything is written."""
+    """The validated, resolved config of a command (variant/schedule conflicts included: the
+    config checks them), and for a sweep a dry resolution of its trial configs, so that errors
+    are reported before anything is written."""
     if args.command == "ablation":
-        cfg = load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
-                           seeds=args.seeds, workers=args.workers, study_name=args.study_name)
-        from experiments.cells import build_cells
-
-        try:
-            build_cells(cfg)
-        except ValueError as e:
-            raise ConfigError(f"train.v: {e}") from None
-        return cfg
+        return load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
+                            seeds=args.seeds, workers=args.workers, study_name=args.study_name)
     space = args.space.split(",") if args.space else None
     cfg = load_profile(args.profile, args.overrides, workers=args.workers, **{
         "sweep.task": args.task, "sweep.variant": args.variant, "sweep.space": space,

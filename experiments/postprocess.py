@@ -14,191 +14,131 @@ for reacher with variant ac-lstm-mdn that has a checkpoint artifact supplies the
 plans, stm.plans.straight_line_plans). "stm" requires the STM, "stand-in" never looks.
 The tag `skeleton_source` says which was used.
 
-Config: a profile (smoke | quick | paper) plus `--set FIELD=VALUE` overrides, validated
-field by field before anything is written; a bad value is a one-line error, exit code 2.
+Config: the [smoothing] or [idm] section of a profile (the ablation's TOML files, smoke | quick |
+results | paper, or a file by path) plus `--set FIELD=VALUE` overrides (names relative to the
+section), validated field by field before anything is written; a bad value is a one-line error,
+exit code 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
+import copy
 import dataclasses
 import logging
-import math
 import os
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from experiments.config import (
-    ConfigError,
-    _build,
-    _check_choice,
-    _check_positive,
-    config_hash,
-    parse_override,
-    set_path,
-)
+from pydantic import Field
+from pydantic.dataclasses import dataclass
+
+from experiments.config import available_profiles, config_hash, parse_override, read_profile, set_path
+from experiments.validation import ConfigError, validated
+from stm.config import STRICT, NonNegativeFloat, PositiveFloat, PositiveInt
 
 log = logging.getLogger(__name__)
 
 KINDS = ("smoothing", "idm")
-PROFILES = ("smoke", "quick", "paper")
-SKELETON_SOURCES = ("auto", "stm", "stand-in")
+Skeletons = Literal["auto", "stm", "stand-in"]
 STM_TASK, STM_VARIANT = "reacher", "ac-lstm-mdn"
+SETTINGS = ("skeletons", "study_name")  # fields of both kinds that are not parameters of the study
 
 
 # ---------------------------------------------------------------- configs
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=STRICT)
 class SmoothingSettings:
     """Arguments of stm.smoothing.smoothing_study plus where the skeletons come from."""
 
-    gamma: float = 5.0  # weight of the velocity term
-    goal_weight: float = 50.0  # weight of the final-tip goal term (gd_goal variant)
-    iters: int = 300  # gradient-descent iterations
-    steps: int = 60  # skeleton length T (STM horizon / IK expert steps)
-    step_seconds: float = 0.1  # the STM's step, for jerk and speed in SI units
+    gamma: NonNegativeFloat = 5.0  # weight of the velocity term
+    goal_weight: NonNegativeFloat = 50.0  # weight of the final-tip goal term (gd_goal variant)
+    iters: PositiveInt = 300  # gradient-descent iterations
+    steps: Annotated[int, Field(ge=3)] = 60  # skeleton length T (STM horizon / IK expert steps); jerk needs 4 points
+    step_seconds: PositiveFloat = 0.1  # the STM's step, for jerk and speed in SI units
     seed: int = 0  # stand-in jitter draw
-    skeletons: str = "auto"  # auto | stm | stand-in
+    skeletons: Skeletons = "auto"
     study_name: str = ""  # "" -> smoothing-<profile>[-<hash>]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=STRICT)
 class IDMSettings:
-    """Top-level fields of stm.idm_study.IDMStudyConfig not covered by its data/idm sections."""
+    """Fields of an [idm] section that are not stm.idm_study.IDMStudyConfig's."""
 
-    skeletons: str = "auto"
+    skeletons: Skeletons = "auto"
     study_name: str = ""  # "" -> idm-<profile>[-<hash>]
 
 
-SMOOTHING_PROFILES = {
-    "smoke": SmoothingSettings(iters=50, steps=20),
-    "quick": SmoothingSettings(),
-    "paper": SmoothingSettings(iters=2000),
-}
-
-
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class PostConfig:
     kind: str
     profile: str
     study: Any  # SmoothingSettings | stm.idm_study.IDMStudyConfig
     skeletons: str
-    study_name: str
+    study_name: str  # --set study_name, else derived from the profile by load_config
+    overridden: bool = False  # the study's parameters differ from the profile's
 
     def params(self) -> dict[str, Any]:
         if self.kind == "idm":
             return {k: (",".join(map(str, v)) if isinstance(v, (list, tuple)) else v)
                     for k, v in self.study.params().items()}
-        return {k: v for k, v in dataclasses.asdict(self.study).items() if k not in ("skeletons", "study_name")}
+        return {k: v for k, v in dataclasses.asdict(self.study).items() if k not in SETTINGS}
 
     def resolved_study_name(self, from_stm: bool = False) -> str:
         """<kind>-<profile>[-stm][-<hash of the params if they differ from the profile's>]: plans from a
         trained STM and from the stand-in are separate studies."""
         if self.study_name:
             return self.study_name
-        same = load_config(self.kind, self.profile, []).params() == self.params()
         return (f"{self.kind}-{self.profile}" + ("-stm" if from_stm else "")
-                + ("" if same else f"-{config_hash(self.params())[:8]}"))
-
-
-def _idm_profile(profile: str):
-    from stm.idm_study import study_profile
-
-    return study_profile(profile)
+                + (f"-{config_hash(self.params())[:8]}" if self.overridden else ""))
 
 
 def load_config(kind: str, profile: str, overrides: list[str]) -> PostConfig:
-    """Profile -> `--set` overrides -> validated config (ConfigError with a one-line message)."""
-    _check_choice("kind", kind, KINDS)
-    _check_choice("profile", profile, PROFILES)
-    raw: dict[str, Any] = {}
+    """The profile's [smoothing] or [idm] section (read once) -> `--set` overrides (field names
+    relative to the section) -> validated config (ConfigError with a one-line message)."""
+    if kind not in KINDS:
+        raise ConfigError(f"kind: {kind!r} is not allowed; allowed: {', '.join(KINDS)}")
+    name, raw = read_profile(profile)
+    section = raw.get(kind, {})
+    if not isinstance(section, dict):
+        raise ConfigError(f"{kind}: expected a section of FIELD = VALUE in the profile")
+    values = copy.deepcopy(section)
     for item in overrides:
         path, value = parse_override(item)
-        set_path(raw, path, value)
-    if kind == "smoothing":
-        base = dataclasses.asdict(SMOOTHING_PROFILES[profile])
-        study = _build(SmoothingSettings, {**base, **raw}, "")
-        _check_positive("iters", study.iters)
-        _check_positive("steps", study.steps, 3)  # jerk needs 4 points
-        for name in ("gamma", "goal_weight"):
-            if not (math.isfinite(getattr(study, name)) and getattr(study, name) >= 0):
-                raise ConfigError(f"{name}: {getattr(study, name)!r} is not allowed; allowed: numbers >= 0")
-        if not study.step_seconds > 0:
-            raise ConfigError(f"step_seconds: {study.step_seconds!r} is not allowed; allowed: numbers > 0")
-        _check_choice("skeletons", study.skeletons, SKELETON_SOURCES)
-        return PostConfig(kind, profile, study, study.skeletons, study.study_name)
-    return _idm_config(profile, raw)
+        set_path(values, path, value)
+    build = _smoothing if kind == "smoothing" else _idm
+    study, settings = build(values)
+    if overrides and not settings.study_name:
+        base, _ = build(copy.deepcopy(section))
+        cfg = PostConfig(kind, name, study, settings.skeletons, "")
+        overridden = cfg.params() != dataclasses.replace(cfg, study=base).params()
+        return dataclasses.replace(cfg, overridden=overridden)
+    return PostConfig(kind, name, study, settings.skeletons, settings.study_name)
 
 
-def _idm_config(profile: str, raw: dict[str, Any]) -> PostConfig:
+def _smoothing(values: dict[str, Any]) -> tuple[SmoothingSettings, SmoothingSettings]:
+    study = validated(SmoothingSettings, values, "")
+    return study, study
+
+
+def _idm(values: dict[str, Any]) -> tuple[Any, IDMSettings]:
     from stm.idm import IDMConfig
-    from stm.idm_data import ExplorationConfig
+    from stm.idm_study import ExplorationSettings, IDMStudyConfig
 
-    base = _idm_profile(profile)
-    data_raw = raw.pop("data", {})
-    idm_raw = raw.pop("idm", {})
-    if not isinstance(data_raw, dict) or not isinstance(idm_raw, dict):
+    settings = validated(IDMSettings, {k: values.pop(k) for k in SETTINGS if k in values}, "")
+    sections = {k: values.pop(k, None) or {} for k in ("data", "idm")}
+    if not all(isinstance(v, dict) for v in sections.values()):
         raise ConfigError("data, idm: expected sections of FIELD = VALUE (e.g. --set idm.epochs=5)")
-    if "dynamics" in data_raw:
+    if "dynamics" in sections["data"]:
         raise ConfigError("data.dynamics: not settable; the perturbed robot is set by real_seed, real_mass, "
                           "real_damping, real_friction")
-    settings = _build(IDMSettings, {k: raw.pop(k) for k in list(raw) if k in ("skeletons", "study_name")}, "")
-    _check_choice("skeletons", settings.skeletons, SKELETON_SOURCES)
-    top_fields = [f.name for f in dataclasses.fields(base) if f.name not in ("data", "idm")]
-    unknown = sorted(set(raw) - set(top_fields))
-    if unknown:
-        allowed = ", ".join(["data.<field>", "idm.<field>", *top_fields, "skeletons", "study_name"])
-        raise ConfigError(f"{unknown[0]}: unknown field; allowed: {allowed}")
-    data_set = _build(_plain_fields(ExplorationConfig, exclude=("dynamics",)), data_raw, "data.")
-    with _stm_errors("data", "ExplorationConfig"):
-        data = dataclasses.replace(base.data, **{k: getattr(data_set, k) for k in data_raw})
-    idm_set = _build(_plain_fields(IDMConfig, exclude=()), idm_raw, "idm.")
-    with _stm_errors("idm", "IDMConfig"):
-        idm = dataclasses.replace(base.idm, **{k: getattr(idm_set, k) for k in idm_raw})
-    top_set = _build(_plain_fields(type(base), exclude=("data", "idm")), raw, "")
-    top = {f: getattr(top_set if f in raw else base, f) for f in top_fields}
-    with _stm_errors("", type(base).__name__):
-        study = type(base)(data=data, idm=idm, **top)
-    _check_positive("plan_steps", study.plan_steps, 2)
-    _check_positive("real_episodes", study.real_episodes)
-    _check_positive("finetune_epochs", study.finetune_epochs, 0)
-    _check_positive("torch_threads", study.torch_threads)
-    if not 0 <= study.real_mass < 1:
-        raise ConfigError(f"real_mass: {study.real_mass!r} is not allowed; allowed: 0 <= real_mass < 1")
-    for name in ("real_damping", "real_friction"):
-        lo_hi = getattr(study, name)
-        if len(lo_hi) != 2 or not 0 <= lo_hi[0] <= lo_hi[1]:
-            raise ConfigError(f"{name}: {list(lo_hi)!r} is not allowed; allowed: [low, high] with 0 <= low <= high")
-    if not study.step_seconds > 0 or study.step_seconds < study.data.control_period:
-        raise ConfigError(f"step_seconds: {study.step_seconds!r} is not allowed; allowed: >= data.control_period "
-                          f"({study.data.control_period})")
-    return PostConfig("idm", profile, study, settings.skeletons, settings.study_name)
-
-
-@contextlib.contextmanager
-def _stm_errors(section: str, class_name: str):
-    """The stm dataclasses' own checks (ValueError) restated as one-line ConfigErrors naming the section."""
-    try:
-        yield
-    except (ValueError, TypeError) as e:
-        msg = str(e).splitlines()[0].replace(f"{class_name}.", f"{section}." if section else "")
-        msg = msg.removeprefix(f"{class_name}: ")
-        raise ConfigError(msg if not section or msg.startswith(f"{section}.") else f"{section}: {msg}") from None
-
-
-def _plain_fields(cls: type, exclude: tuple[str, ...]) -> type:
-    """A frozen dataclass with cls's fields minus `exclude` (defaults kept), so that
-    experiments.config._build checks names and types without running cls's own checks."""
-    fields = [(f.name, f.type, dataclasses.field(default=f.default) if f.default is not dataclasses.MISSING
-               else dataclasses.field(default_factory=f.default_factory))
-              for f in dataclasses.fields(cls) if f.name not in exclude]
-    return dataclasses.make_dataclass(f"{cls.__name__}Fields", fields, frozen=True)
+    data = validated(ExplorationSettings, sections["data"], "data")
+    idm = validated(IDMConfig, sections["idm"], "idm")
+    return validated(IDMStudyConfig, {**values, "data": data, "idm": idm}, ""), settings
 
 
 # ---------------------------------------------------------------- skeleton source
@@ -351,7 +291,8 @@ def add_parsers(sub) -> None:
              "idm": "inverse dynamics model study (stm.idm_study) as a tracked MLflow run"}
     for kind in KINDS:
         p = sub.add_parser(kind, help=helps[kind])
-        p.add_argument("--profile", default="quick", help=f"config profile: {', '.join(PROFILES)}")
+        p.add_argument("--profile", default="quick", help=f"config profile: {', '.join(available_profiles())}, "
+                       f"or the path of a TOML file (its [{kind}] section)")
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                        help="override a config field, e.g. --set iters=500 (smoothing), --set idm.epochs=5 "
                             "(idm), --set skeletons=stand-in (repeatable)")

@@ -96,7 +96,7 @@ def _cell_objective(cfg: StudyConfig, cells: dict[str, Cell], client: Client, ur
         set_tags(client, run_id, {"worker": worker_id(), "queue_entry": trial.number})
         log.info("worker %s: cell %s (queue entry %d, run %s)", worker_id(), cell.key, trial.number, run_id)
         # the claim waits out a dead worker's claim on the run (on another host: up to the grace period)
-        got = claimed_cell(cell.to_dict(), uri, run_id, False, level, TORCH_THREADS, cfg.sweep.heartbeat,
+        got = claimed_cell(cell, uri, run_id, False, level, TORCH_THREADS, cfg.sweep.heartbeat,
                            cfg.sweep.grace_period, True)
         if got.kind == "done":
             trial.set_user_attr("skipped", "FINISHED by another command")

@@ -112,10 +112,8 @@ def study_name(cfg: StudyConfig) -> str:
 
 def check_sweep(cfg: StudyConfig) -> None:
     """Config errors a sweep would hit later, raised now (before anything is written)."""
-    from stm.config import TrainConfig
-
-    _, train = cfg.stm_dicts(cfg.sweep.task)  # the pruner needs intermediate values whatever the objective
-    if train.get("val_every", TrainConfig().val_every) <= 0:
+    # the pruner needs intermediate values whatever the objective
+    if cfg.task_config(cfg.sweep.task).train.val_every <= 0:
         raise ConfigError("train.val_every: must be > 0 for a sweep (the pruner and objective read the "
                           "validation metric); allowed: positive integers")
     try:

@@ -66,16 +66,18 @@ def cell_params(cell: Cell) -> dict[str, str]:
             **provenance_params()}
 
 
-def run_cell(cell_dict: dict[str, Any], uri: str, run_id: str, progress: bool = False,
+def run_cell(cell: Cell | dict[str, Any], uri: str, run_id: str, progress: bool = False,
              log_level: int = logging.INFO, threads: int | None = None) -> CellResult:
-    """Entry point for worker processes (arguments are plain data so they pickle under spawn).
-    `threads`: torch intra-op threads, so that K workers do not oversubscribe the cores."""
+    """Entry point for worker processes: the cell (it pickles under spawn; or its to_dict, plain
+    data) with its typed configs. `threads`: torch intra-op threads, so that K workers do not
+    oversubscribe the cores."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
     if threads:
         import torch
 
         torch.set_num_threads(threads)
-    cell = Cell.from_dict(cell_dict)
+    if not isinstance(cell, Cell):
+        cell = Cell.from_dict(cell)
     client = Client(uri)
     start = time.perf_counter()
     resumed_from = 0
@@ -124,7 +126,6 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
     from envs.tasks import get_task
     from experiments.evaluation import evaluate_model, rollout_arrays, rollout_figure
     from stm.checkpoint import CheckpointError, load_checkpoint
-    from stm.config import ModelConfig, TrainConfig
     from stm.train import train
 
     config_file = work / "config" / "config.json"
@@ -151,8 +152,7 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
 
     task = get_task(cell.task, **cell.data)
     demos = load_demos(task, seed=cell.dataset_seed)
-    model_cfg = ModelConfig.from_dict(cell.model)
-    train_cfg = TrainConfig.from_dict(cell.train)
+    model_cfg, train_cfg = cell.model, cell.train
     seed_everything(cell.seed)
 
     # a resumed run recomputes the steps after its checkpoint exactly: drop the ones already logged
@@ -174,15 +174,17 @@ def _train_and_evaluate(cell: Cell, client: Client, run_id: str, work: Path, pro
                    on_metrics=buffer.add, on_checkpoint=on_checkpoint, on_validation=on_validation,
                    progress=progress)
     buffer.flush()
+    from experiments.model_logging import log_stm  # the trained STM as the run's MLflow model "model"
+    log_stm(result.model, client, run_id)
     log.info("cell %s: trained in %.0fs; evaluating on %s", cell.key, result.seconds, ", ".join(cell.eval_tasks))
     log_metrics(client, run_id, {"time/train_seconds": result.seconds, "train/iterations": result.iterations})
 
-    metrics, details = evaluate_model(result.model, list(cell.eval_tasks), cell.eval, seed=cell.seed,
+    metrics, details = evaluate_model(result.model, list(cell.eval_tasks), cell.eval_dict(), seed=cell.seed,
                                       phi_mode=train_cfg.phi_mode, data=cell.data,
                                       train_feedback=train_cfg.feedback, temperature=train_cfg.temperature)
     metrics["time/train_seconds"] = result.seconds
     log_metrics(client, run_id, metrics)
-    n_fig = int(cell.eval.get("figures", 0))
+    n_fig = cell.eval.figures
     roll_dir = work / "rollouts"
     roll_dir.mkdir()
     timing = {}

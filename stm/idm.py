@@ -10,7 +10,7 @@ simulator, then used at 10x the STM's rate to track its plans.
   data's statistics (kept as buffers, so a checkpoint is self-contained).
 - `train_idm`: NLL training (Adam), also fine-tuning of a trained model.
 - `FastIDM`: the same network as plain numpy matmuls for the control loop (batch 1).
-- `IDMController`, `track_plan`: the control loop (see stm.idm_eval for metrics,
+- `IDMController`, `track_plan`: the control loop (see stm.idm_study for metrics,
   the sim-to-"real" study and figures).
 """
 
@@ -19,15 +19,19 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
 import torch.nn as nn
+from pydantic import Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 from scipy.interpolate import CubicSpline
 from tqdm.auto import tqdm
 
 from envs.robot import LIMITS
 from stm import mdn
+from stm.config import STRICT, NonNegativeInt, PositiveFloat, PositiveInt
 from stm.idm_data import FEATURE_DIM, HISTORY, IDMData, idm_features
 from stm.torque_sim import TorqueWorld
 
@@ -36,28 +40,20 @@ log = logging.getLogger(__name__)
 N_JOINTS = 7
 
 
-@dataclass(frozen=True)
+@pydantic_dataclass(frozen=True, config=STRICT)
 class IDMConfig:
     """Network and training settings of the IDM (all logged as parameters)."""
 
-    hidden: int = 256  # units per layer (paper)
-    layers: int = 3  # hidden layers (paper)
-    mixtures: int = 15  # Gaussians per torque dimension (paper)
-    sigma_min: float = 1e-3  # floor of each component's std, in standardised torque units
-    lr: float = 1e-3
-    batch_size: int = 512
-    epochs: int = 40
-    val_fraction: float = 0.1
+    hidden: PositiveInt = 256  # units per layer (paper)
+    layers: PositiveInt = 3  # hidden layers (paper)
+    mixtures: PositiveInt = 15  # Gaussians per torque dimension (paper)
+    sigma_min: PositiveFloat = 1e-3  # floor of each component's std, in standardised torque units
+    lr: PositiveFloat = 1e-3
+    batch_size: PositiveInt = 512
+    epochs: NonNegativeInt = 40
+    val_fraction: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.1
     seed: int = 0
-    point: str = "mixture_mean"  # torque from the mixture: mixture_mean | component_mean
-
-    def __post_init__(self):
-        if self.point not in ("mixture_mean", "component_mean"):
-            raise ValueError(f"IDMConfig.point must be mixture_mean or component_mean, got {self.point!r}")
-        if self.hidden < 1 or self.layers < 1 or self.mixtures < 1 or self.epochs < 0 or self.batch_size < 1:
-            raise ValueError("IDMConfig: hidden, layers, mixtures, batch_size must be >= 1 and epochs >= 0")
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"IDMConfig.val_fraction must be in [0, 1), got {self.val_fraction}")
+    point: Literal["mixture_mean", "component_mean"] = "mixture_mean"  # torque from the mixture
 
 
 class InverseDynamicsMDN(nn.Module):
@@ -104,10 +100,11 @@ def standardisation(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x.mean(axis=0), np.where(std > 1e-6, std, 1.0)  # constant features pass unscaled
 
 
-def train_idm(data: IDMData, cfg: IDMConfig = IDMConfig(), model: InverseDynamicsMDN | None = None,
+def train_idm(data: IDMData, cfg: IDMConfig | None = None, model: InverseDynamicsMDN | None = None,
               progress: bool | None = None) -> tuple[InverseDynamicsMDN, dict[str, list[float]]]:
     """Train a new IDM on `data` (or fine-tune `model`, keeping its standardisation).
     Returns the model and its history: train_nll and val_nll per epoch."""
+    cfg = cfg or IDMConfig()
     torch.manual_seed(cfg.seed)
     x, y = data.samples()
     if len(x) < 2:
@@ -261,9 +258,3 @@ def track_plan(world: TorqueWorld, policy, plan: np.ndarray, step_seconds: float
         tips.append(world.tip())
     return Tracking(times, np.array(qs), np.array(tips), np.array(taus), q_des, ratio, busy / max(1, len(taus)))
 
-
-def idm_study(*args, **kwargs) -> dict:
-    """The IDM study (stm.idm_study.idm_study), importable from here as well."""
-    from stm.idm_study import idm_study as run
-
-    return run(*args, **kwargs)

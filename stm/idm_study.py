@@ -19,15 +19,19 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, field, replace
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
+from pydantic import Field, ValidationInfo, field_validator
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from envs.kinematics import tip_position_np
 from envs.sim import Scene
 from envs.tasks.reacher import SUCCESS_RADIUS  # the reacher's success criterion
+from stm.config import STRICT, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
 from stm.figures import save_figure
 from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, Tracking, save_idm, track_plan, train_idm
 from stm.idm_data import ExplorationConfig, idm_features, load_or_collect
@@ -36,24 +40,46 @@ from stm.torque_sim import TorqueWorld
 
 log = logging.getLogger(__name__)
 
+@pydantic_dataclass(frozen=True, config=STRICT)
+class ExplorationSettings(ExplorationConfig):
+    """An ExplorationConfig whose field types are checked (the study's dataset comes from a profile)."""
 
-@dataclass(frozen=True)
+
+FloatRange = tuple[NonNegativeFloat, NonNegativeFloat]
+
+
+@pydantic_dataclass(frozen=True, config=STRICT)
 class IDMStudyConfig:
-    data: ExplorationConfig = field(default_factory=ExplorationConfig)
+    data: ExplorationConfig = field(default_factory=ExplorationSettings)
     idm: IDMConfig = field(default_factory=IDMConfig)
     real_seed: int = 1  # draw of the perturbed "real" dynamics
-    real_mass: float = 0.2  # link masses (and inertias) x U(1 - real_mass, 1 + real_mass)
-    real_damping: tuple[float, float] = (0.5, 1.5)  # joint damping x U(range)
-    real_friction: tuple[float, float] = (0.5, 1.5)  # joint friction x U(range)
-    real_episodes: int = 10  # episodes of fine-tuning data collected on the perturbed robot
-    finetune_epochs: int = 20
-    finetune_lr: float = 3e-4
+    real_mass: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.2  # link masses (and inertias) x U(1 - m, 1 + m)
+    real_damping: FloatRange = (0.5, 1.5)  # joint damping x U(range)
+    real_friction: FloatRange = (0.5, 1.5)  # joint friction x U(range)
+    real_episodes: PositiveInt = 10  # episodes of fine-tuning data collected on the perturbed robot
+    finetune_epochs: NonNegativeInt = 20
+    finetune_lr: PositiveFloat = 3e-4
     scratch_baseline: bool = True  # also train on the perturbed data alone
-    plan_steps: int = 60
-    smoothing_gamma: float = 0.0  # > 0: smooth the plans first (stm.smoothing, the paper's pipeline)
-    smoothing_goal_weight: float = 0.0  # goal term of that smoothing (needs goals)
-    step_seconds: float = 0.1  # the STM's step; the IDM runs at data.control_period
-    torch_threads: int = 1  # small matmuls: extra threads only add contention on a shared CPU
+    plan_steps: Annotated[int, Field(ge=2)] = 60
+    smoothing_gamma: NonNegativeFloat = 0.0  # > 0: smooth the plans first (stm.smoothing, the paper's pipeline)
+    smoothing_goal_weight: NonNegativeFloat = 0.0  # goal term of that smoothing (needs goals)
+    step_seconds: PositiveFloat = 0.1  # the STM's step; the IDM runs at data.control_period
+    torch_threads: PositiveInt = 1  # small matmuls: extra threads only add contention on a shared CPU
+
+    @field_validator("real_damping", "real_friction")
+    @classmethod
+    def _range(cls, lo_hi: tuple[float, float]) -> tuple[float, float]:
+        if lo_hi[0] > lo_hi[1]:
+            raise ValueError(f"{list(lo_hi)!r} is not allowed; allowed: [low, high] with 0 <= low <= high")
+        return lo_hi
+
+    @field_validator("step_seconds")
+    @classmethod
+    def _step(cls, step: float, info: ValidationInfo) -> float:
+        data = info.data.get("data")
+        if data is not None and step < data.control_period:
+            raise ValueError(f"{step!r} is not allowed; allowed: >= data.control_period ({data.control_period})")
+        return step
 
     def params(self) -> dict:
         """Flat parameters for tracking (MLflow)."""
@@ -61,21 +87,6 @@ class IDMStudyConfig:
         out.update({f"idm.{k}": v for k, v in asdict(self.idm).items()})
         out.update({k: v for k, v in asdict(self).items() if k not in ("data", "idm")})
         return out
-
-
-def study_profile(name: str) -> IDMStudyConfig:
-    """Sizes for smoke (seconds; tests), quick (the default, minutes on a laptop CPU)
-    and paper (more data and epochs)."""
-    if name == "smoke":
-        return IDMStudyConfig(data=ExplorationConfig(episodes=4, episode_seconds=2.0),
-                              idm=IDMConfig(hidden=64, epochs=3), real_episodes=2, finetune_epochs=2,
-                              scratch_baseline=False, plan_steps=15)
-    if name == "quick":
-        return IDMStudyConfig()
-    if name == "paper":
-        return IDMStudyConfig(data=ExplorationConfig(episodes=200), idm=IDMConfig(epochs=100), real_episodes=40,
-                              finetune_epochs=40)
-    raise ValueError(f"unknown IDM study profile {name!r}; known: smoke, quick, paper")
 
 
 def position_playback_tips(plans: np.ndarray, step_seconds: float) -> np.ndarray:
@@ -151,7 +162,7 @@ def measure_latency(model: InverseDynamicsMDN, repeats: int = 2000) -> dict[str,
     return {"latency_fast_ms": 1e3 * float(np.median(fast)), "latency_torch_ms": 1e3 * float(np.median(slow))}
 
 
-def idm_study(cfg: IDMStudyConfig = IDMStudyConfig(), plans: np.ndarray | None = None, goals: np.ndarray | None = None,
+def idm_study(cfg: IDMStudyConfig | None = None, plans: np.ndarray | None = None, goals: np.ndarray | None = None,
               cache_dir: str | Path | None = None, out_dir: str | Path | None = None,
               progress: bool | None = None, sim_model: InverseDynamicsMDN | None = None) -> dict:
     """Run the study; returns a flat metrics dict ('<condition>/<metric>', data hashes,
@@ -159,6 +170,7 @@ def idm_study(cfg: IDMStudyConfig = IDMStudyConfig(), plans: np.ndarray | None =
     expert's plans to the four goals. `sim_model`: an IDM already trained in
     simulation (skips data and training). With `out_dir`: the tracking figure
     (PNG + PDF) and the two IDM checkpoints, listed under 'figures' and 'artifacts'."""
+    cfg = cfg or IDMStudyConfig()
     from stm.plans import FOUR_GOALS, straight_line_plans
 
     threads = torch.get_num_threads()

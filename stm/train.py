@@ -139,9 +139,10 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
     centred_gt = z_gt * model.state_std if noisy else batch.states[:, :-1] - mean  # ground truth for the stepper
     hs, fed = [], []  # top hidden states (pieces of (B, n, H)) and the self-fed (t, state) pairs
     hl = cl = None  # per-layer (h, c) lists
+    runs = iter(torch.unique_consecutive(schedule(T, cfg.u, cfg.v), return_counts=True)[1].tolist())  # gt, self, ...
     t = 0
     while t < T:
-        n = min(cfg.u, T - t)  # ground-truth chunk
+        n = next(runs)  # ground-truth chunk
         if hl is not None and n <= _STEPPED_GT_CHUNK:
             block = []
             for j in range(n):
@@ -154,7 +155,7 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
             hl, cl = list(hc[0].unbind(0)), list(hc[1].unbind(0))
         hs.append(h)
         t += n
-        k = min(cfg.v, T - t)
+        k = next(runs, 0)  # self-fed chunk
         if k == 0:
             continue
         q = batch.q[:, t - 1]

@@ -27,16 +27,12 @@ def test_profiles_exist_and_load():
 
 
 def test_paper_profile_has_the_paper_sizes():
-    from stm.config import ModelConfig, TrainConfig
-
     cfg = load_profile("paper")
-    m, t = cfg.stm_dicts("reacher")
-    assert (m["hidden_size"], m["num_layers"], m["mixtures"], t["iters"]) == (64, 3, 3, 5000)
-    assert (t["u"], t["v"]) == (5, 5)
-    m, t = cfg.stm_dicts("pick-place")
-    assert (m["hidden_size"], m["num_layers"], m["mixtures"], t["iters"]) == (128, 3, 20, 30000)
-    ModelConfig.from_dict({**ModelConfig().to_dict(), **m})
-    TrainConfig.from_dict({**TrainConfig().to_dict(), **t})
+    m, t = cfg.task_config("reacher").model, cfg.task_config("reacher").train
+    assert (m.hidden_size, m.num_layers, m.mixtures, t.iters) == (64, 3, 3, 5000)
+    assert (t.u, t.v) == (5, 5)
+    m, t = cfg.task_config("pick-place").model, cfg.task_config("pick-place").train
+    assert (m.hidden_size, m.num_layers, m.mixtures, t.iters) == (128, 3, 20, 30000)
 
 
 def test_overrides_apply_and_rename_the_study():
@@ -108,8 +104,8 @@ def test_cells_and_hashes():
     changed = build_cells(load_profile("smoke", ["train.iters=11"], seeds=2))
     assert not {c.config_hash for c in cells} & {c.config_hash for c in changed}
     by_variant = {c.variant: c for c in cells if c.seed == 0}
-    assert by_variant["lstm"].train["v"] == 0 and by_variant["lstm"].model["head"] == "deterministic"
-    assert by_variant["ac-lstm-mdn"].train["v"] > 0 and by_variant["ac-lstm-mdn"].model["head"] == "mdn"
+    assert by_variant["lstm"].train.v == 0 and by_variant["lstm"].model.head == "deterministic"
+    assert by_variant["ac-lstm-mdn"].train.v > 0 and by_variant["ac-lstm-mdn"].model.head == "mdn"
     assert cells[0].eval_tasks[0] == cells[0].task
 
 
@@ -217,3 +213,88 @@ def test_sweep_study_names_separate_different_settings():
     assert study_name(load_profile("smoke", ["train.iters=9"])) != base
     assert study_name(load_profile("smoke", ["sweep.space=[\"m\"]"])) != base
     assert study_name(load_profile("smoke", ["sweep.study_name=x"])) == "x"
+
+
+def test_cell_keys_and_hashes_match_the_recorded_ones():
+    """A re-run on an existing store skips cells whose config hash it finds FINISHED: the keys
+    and hashes of every profile (recorded on main 991f874, tests/data/cell_hashes.json) must not
+    move, or every cell of every existing study would be retrained."""
+    import json
+
+    recorded = json.loads((REPO / "tests" / "data" / "cell_hashes.json").read_text())
+    configs = {p: load_profile(p) for p in ("smoke", "quick", "results", "paper")}
+    configs["smoke+train.iters=7+per_task.reacher.data.n_demos=90+seeds=2"] = load_profile(
+        "smoke", ["train.iters=7", "per_task.reacher.data.n_demos=90"], seeds=2)
+    for name, cfg in configs.items():
+        got = {"study_name": cfg.resolved_study_name(), "study_hash": cfg.study_hash(),
+               "cells": {c.key: c.config_hash for c in build_cells(cfg)}}
+        assert got == recorded[name], name
+
+
+def test_a_profile_file_that_does_not_parse_is_one_line_naming_the_file_and_line(tmp_path):
+    """Issue 19, 1: a TOML syntax error was a 30-line tomllib traceback and exit 1."""
+    bad = tmp_path / "mine.toml"
+    bad.write_text('tasks = ["reacher"]\nseeds = \n')
+    for command in ("ablation", "sweep", "smoothing", "idm"):
+        proc = _cli([command, "--profile", str(bad)], tmp_path)
+        assert proc.returncode == 2, proc.stderr
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.startswith("pybullet build time")]
+        assert len(lines) == 1 and "mine.toml" in lines[0] and "line 2" in lines[0], proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.toml"]
+
+
+def test_a_profile_can_be_any_toml_file(tmp_path):
+    from experiments.postprocess import load_config
+
+    own = tmp_path / "tiny.toml"
+    own.write_text((REPO / "experiments" / "profiles" / "smoke.toml").read_text().replace("seeds = 1", "seeds = 3"))
+    cfg = load_profile(str(own))
+    assert (cfg.profile, cfg.seeds, cfg.resolved_study_name()) == ("tiny", 3, "tiny")
+    smoke = {c.key.replace("seed0", "s"): c.config_hash for c in build_cells(load_profile("smoke"))}
+    assert {c.key.replace("seed0", "s"): c.config_hash for c in build_cells(cfg) if c.seed == 0} == smoke
+    assert load_config("smoothing", str(own), []).study.iters == 50
+    with pytest.raises(ConfigError, match=r"^profile: .*nowhere.toml: "):
+        load_profile(str(tmp_path / "nowhere.toml"))
+    clash = tmp_path / "smoke.toml"
+    clash.write_text(own.read_text())
+    with pytest.raises(ConfigError, match="built-in profile"):  # its studies would mix with smoke's
+        load_profile(str(clash))
+
+
+def test_the_study_name_tells_studies_of_other_tasks_and_variants_apart():
+    """Issue 19, 6: studies with different --variants shared one parent run (and overwrote its status)."""
+    base = load_profile("smoke").resolved_study_name()
+    lstm = load_profile("smoke", variants=["lstm"]).resolved_study_name()
+    ac = load_profile("smoke", variants=["ac-lstm-mdn"]).resolved_study_name()
+    assert base == "smoke" and len({base, lstm, ac}) == 3
+    assert load_profile("smoke", variants=["ac-lstm-mdn", "lstm"]).resolved_study_name() == base  # same cells
+    assert load_profile("smoke", tasks=["reacher", "circle"]).resolved_study_name() not in (base, lstm, ac)
+    assert load_profile("smoke", seeds=3).resolved_study_name() == base  # more seeds continue the study
+    # the cells themselves do not change: a cell FINISHED in one study has the same hash in another
+    assert build_cells(load_profile("smoke", variants=["lstm"]))[0].config_hash == \
+        {c.key: c.config_hash for c in build_cells(load_profile("smoke"))}["reacher/lstm/seed0"]
+
+
+def test_set_applies_to_every_task_and_wins_over_the_profiles_per_task_values(caplog):
+    """`--set train.u=3` on quick was shadowed by per_task u = 1 of reacher and pick-place."""
+    with caplog.at_level("WARNING", logger="experiments.config"):
+        cfg = load_profile("quick", ["train.u=3"], variants=["ac-lstm-mdn"])
+    assert {t: cfg.task_config(t).train.u for t in cfg.tasks} == {t: 3 for t in cfg.tasks}
+    assert all(c.train.u == 3 for c in build_cells(cfg))
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1 and "per_task.reacher.train.u = 1" in warnings[0] and "pick-place" in warnings[0]
+    assert cfg.task_config("reacher").train.v == 9  # only the field given on the command line
+    # a per_task value given on the command line is the command line's, whatever the order
+    cfg = load_profile("quick", ["per_task.reacher.train.u=2", "train.u=3"])
+    assert (cfg.task_config("reacher").train.u, cfg.task_config("circle").train.u) == (2, 3)
+    # the study name follows: a study where the override changed nothing stays the profile's
+    assert load_profile("quick", ["train.log_every=10"]).resolved_study_name() == "quick"
+
+
+def test_a_variant_that_contradicts_the_schedule_fails_with_the_config():
+    """Checked when the config is resolved (the CLI no longer builds the cells twice to find out)."""
+    with pytest.raises(ConfigError, match=r"^train.v: variant 'ac-lstm-mdn' uses auto-conditioning"):
+        load_profile("smoke", ["train.v=0"])
+    with pytest.raises(ConfigError, match=r"^per_task.reacher.train.v: variant 'ac-lstm' "):
+        load_profile("quick", ["per_task.reacher.train.v=0"], variants=["ac-lstm"])
+    assert load_profile("smoke", ["train.v=0"], variants=["lstm"]).task_config("reacher").train.v == 0

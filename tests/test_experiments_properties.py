@@ -14,14 +14,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from experiments.config import FEEDBACK_MODES, OBJECTIVES, SAMPLERS, ConfigError, parse_override
-from stm.config import HEADS, PHI_MODES
+from experiments.config import OBJECTIVES, SAMPLERS, ConfigError, parse_override
+from stm.config import FEEDBACKS, HEADS, PHI_MODES
 
 # integer fields and the smallest allowed value
 INT_FIELDS = {"train.iters": 0, "train.batch_size": 1, "train.u": 1, "train.v": 0, "train.val_episodes": 1,
               "model.hidden_size": 1, "model.num_layers": 1, "model.mixtures": 1, "eval.rollouts": 1,
               "eval.figures": 0, "seeds": 1, "workers": 0, "sweep.trials": 1, "sweep.heartbeat": 1}
-CHOICES = {"train.feedback": FEEDBACK_MODES, "eval.feedback": FEEDBACK_MODES, "model.head": HEADS,
+CHOICES = {"train.feedback": FEEDBACKS, "eval.feedback": FEEDBACKS, "model.head": HEADS,
            "train.phi_mode": PHI_MODES, "sweep.sampler": SAMPLERS, "sweep.objective": OBJECTIVES}
 SECTIONS = ("train", "model", "eval", "sweep")
 KNOWN = set(INT_FIELDS) | set(CHOICES)
@@ -134,7 +134,7 @@ accepted = st.one_of(
     st.tuples(st.sampled_from(["train.lr", "model.sigma_min"]),
               st.floats(min_value=1e-12, max_value=1e3, allow_nan=False, allow_infinity=False)),
     st.tuples(st.just("train.grad_clip"), st.floats(min_value=0.0, max_value=1e6, allow_nan=False)),
-    st.tuples(st.just("eval.feedback"), st.sampled_from(FEEDBACK_MODES)),
+    st.tuples(st.just("eval.feedback"), st.sampled_from(FEEDBACKS)),
 )
 
 

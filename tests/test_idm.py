@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from envs.robot import NEUTRAL_Q
-from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, track_plan, train_idm
+from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, load_idm, save_idm, track_plan, train_idm
 from stm.idm_data import FEATURE_DIM, ExplorationConfig, IDMData, cache_path, collect, load_or_collect
 from stm.torque_sim import JointDynamics, TorqueWorld
 
@@ -45,6 +45,19 @@ def test_paper_sizes_are_the_defaults():
     linears = [m for m in model.trunk if isinstance(m, torch.nn.Linear)]
     assert [lin.out_features for lin in linears] == [256, 256, 256]
     assert model.head.out_features == 7 * 15 * 3
+
+
+def test_a_saved_idm_loads_with_its_config_and_standardisation(tmp_path, tiny_data):
+    """The study logs idm_sim.pt / idm_finetuned.pt: load_idm is how a user gets them back."""
+    model, _ = train_idm(tiny_data, IDMConfig(hidden=16, mixtures=2, epochs=1, batch_size=32, point="component_mean"))
+    save_idm(model, tmp_path / "idm.pt")
+    loaded = load_idm(tmp_path / "idm.pt")
+    assert loaded.cfg == model.cfg and not loaded.training
+    x = torch.randn(4, FEATURE_DIM)
+    with torch.inference_mode():
+        torch.testing.assert_close(loaded.torques(x), model.torques(x))
+    with pytest.raises(ValueError, match="point"):
+        IDMConfig(point="median")
 
 
 def test_nll_decreases_on_a_tiny_dataset(tiny_data):
@@ -123,9 +136,10 @@ def test_short_idm_rollout_in_pybullet_stays_stable():
 
 
 def test_idm_study_smoke_end_to_end(tmp_path):
-    from stm.idm_study import idm_study, study_profile
+    from experiments.postprocess import load_config
+    from stm.idm_study import idm_study
 
-    res = idm_study(study_profile("smoke"), cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
+    res = idm_study(load_config("idm", "smoke", []).study, cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
     for cond in ("position", "sim", "real_sim_idm", "real_finetuned"):
         assert 0 <= res[f"{cond}/tip_rmse_vs_plan_m"] < 1.0
         assert res[f"{cond}/success_rate"] in (0.0, 0.25, 0.5, 0.75, 1.0)
@@ -133,4 +147,4 @@ def test_idm_study_smoke_end_to_end(tmp_path):
     assert res["latency_fast_ms"] > 0 and res["data_samples"] == 4 * 198
     assert all((tmp_path / "out" / n).exists() for n in ("idm_tracking.png", "idm_tracking.pdf", "idm_sim.pt"))
     with pytest.raises(ValueError, match="profile"):
-        study_profile("huge")
+        load_config("idm", "huge", [])

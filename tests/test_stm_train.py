@@ -232,5 +232,5 @@ def test_tf_warmup_teacher_forces_the_first_iterations_then_auto_conditions(toy,
     path = tmp_path / "w.pt"
     train(TINY, TrainConfig.from_dict({**cfg.to_dict(), "iters": 2}), task, demos, checkpoint_path=path)
     assert train(TINY, cfg, task, demos, checkpoint_path=path).history["train/loss"] == warm
-    with pytest.raises(ValueError, match="tf_warmup must be >= 0"):
+    with pytest.raises(ValueError, match=r"tf_warmup\s+Input should be greater than or equal to 0"):
         TrainConfig(tf_warmup=-1)

@@ -1,0 +1,120 @@
+"""The [eval] and [sweep] sections of a study config, and the registries their values come from
+(tasks of envs.tasks, variants of stm.registry). Types and ranges are pydantic's (stm.config.STRICT);
+experiments.config re-exports everything here."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, get_args
+
+from pydantic import BeforeValidator, Field, ValidationInfo, field_validator
+from pydantic.dataclasses import dataclass
+
+from experiments.validation import as_tuple
+from stm.config import STRICT, Feedback, NonNegativeInt, PositiveInt
+
+Sampler = Literal["tpe", "grid", "random"]
+Objective = Literal["val", "final_distance", "failure_rate"]
+SweepParam = Literal["m", "u", "v", "feedback", "sigma_min"]
+SAMPLERS: tuple[str, ...] = get_args(Sampler)
+OBJECTIVES: tuple[str, ...] = get_args(Objective)
+SWEEP_PARAMS: tuple[str, ...] = get_args(SweepParam)
+
+
+Radii = Annotated[tuple[Annotated[float, Field(allow_inf_nan=False)], ...], BeforeValidator(as_tuple)]
+
+
+@dataclass(frozen=True, config=STRICT)
+class EvalConfig:
+    """How every trained model is evaluated in pybullet."""
+
+    rollouts: PositiveInt = 50  # evaluation episodes per evaluated task
+    seed: int = 10_000  # episode seed; training seed s is evaluated on episodes of seed + s (same for every variant)
+    feedback: Feedback = "component_mean"  # fed back by an MDN in rollouts (one trained sampling samples)
+    # read by the circle task itself (envs.tasks.circle.Circle.eval_options); kept here so config hashes stay
+    circle_radii: Radii = (0.05, 0.10, 0.15)  # m; the paper's evaluation radii
+    circle_unseen_radii: Radii = (0.075, 0.125)  # m; radii absent from the demos
+    figures: NonNegativeInt = 4  # rollouts drawn in each task's figure (0: no figures)
+
+
+@dataclass(frozen=True, config=STRICT)
+class SweepConfig:
+    """An Optuna sweep of one (task, variant); ranges are documented in experiments.sweep."""
+
+    task: str = "reacher"
+    variant: str = "ac-lstm-mdn"
+    space: Annotated[tuple[SweepParam, ...], BeforeValidator(as_tuple)] = SWEEP_PARAMS
+    trials: PositiveInt = 20
+    sampler: Sampler = "tpe"
+    storage: str = ""  # "" -> JournalFileBackend file next to mlflow.db; or postgresql://...
+    objective: Objective = "val"  # "val": last validation metric; "final_distance": rollout goal error; "failure_rate"
+    eval_rollouts: PositiveInt = 10  # episodes for the final_distance / failure_rate objectives
+    seed: int = 0
+    study_name: str = ""  # "" -> "<task>-<variant>-<profile>"
+    warmup_steps: NonNegativeInt = 0  # median pruner: iterations before pruning may start
+    startup_trials: NonNegativeInt = 2  # median pruner: trials completed before pruning may start
+    heartbeat: PositiveInt = 10  # s; RDB storages (postgresql://, sqlite:///): a trial's process beats this often
+    grace_period: int = 60  # s without a beat before a trial counts as dead (its worker was killed)
+    max_retry: NonNegativeInt = 2  # a dead worker's trial is re-queued with the same parameters this many times
+
+    @field_validator("task")
+    @classmethod
+    def _task(cls, task: str) -> str:
+        return choice(task, training_tasks())
+
+    @field_validator("variant")
+    @classmethod
+    def _variant(cls, variant: str) -> str:
+        return choice(variant, known_variants())
+
+    @field_validator("space")
+    @classmethod
+    def _space(cls, space: tuple[str, ...]) -> tuple[str, ...]:
+        if not space:
+            raise ValueError(f"empty; allowed: {', '.join(SWEEP_PARAMS)}")
+        return space
+
+    @field_validator("storage")
+    @classmethod
+    def _storage(cls, url: str) -> str:
+        if url and not url.startswith(("postgresql://", "postgresql+", "sqlite:///", "journal:")):
+            raise ValueError(f"unsupported URL {url!r}; allowed: postgresql://..., sqlite:///..., journal:<path>, "
+                             "or empty for the journal file next to mlflow.db")
+        return url
+
+    @field_validator("grace_period")
+    @classmethod
+    def _grace(cls, grace: int, info: ValidationInfo) -> int:
+        beat = info.data.get("heartbeat")
+        if beat is not None and grace <= beat:
+            raise ValueError(f"{grace!r} is not allowed; allowed: integers > sweep.heartbeat ({beat})")
+        return grace
+
+
+def known_tasks() -> dict[str, str]:
+    """Registered task name -> its model_task."""
+    from envs.tasks import TASKS  # importing the package registers the built-in tasks
+
+    return {name: (cls.model_task or name) for name, cls in sorted(TASKS.items())}
+
+
+def training_tasks() -> list[str]:
+    return [name for name, model_task in known_tasks().items() if model_task == name]
+
+
+def evaluation_tasks(training_task: str) -> list[str]:
+    """Every task evaluated with the model trained on `training_task` (itself first)."""
+    others = [n for n, m in known_tasks().items() if m == training_task and n != training_task]
+    return [training_task, *others]
+
+
+def known_variants() -> list[str]:
+    from stm.registry import VARIANTS
+
+    return list(VARIANTS)
+
+
+
+def choice(value: Any, allowed: list[str] | tuple[str, ...]) -> Any:
+    if value not in allowed:
+        raise ValueError(f"{value!r} is not allowed; allowed: {', '.join(allowed)}")
+    return value
