@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from stm.figures import save_figure
+from envs.figures import save_figure
 
 log = logging.getLogger(__name__)
 
