@@ -81,6 +81,17 @@ def _valid(npz: Path, meta_path: Path) -> bool:
         return False
 
 
+def _forget_mlflow_stores() -> None:
+    """MLflow caches one store per URI string in this process; a relative URI (sqlite:///mlflow.db) would
+    otherwise keep reaching the first test's working directory from every later in-process test. No public
+    API clears it: the cache of its store registry (absent in another MLflow version: nothing to clear)."""
+    from mlflow.tracking._tracking_service import utils
+
+    get_store = getattr(type(utils._tracking_store_registry), "_get_store_with_resolved_uri", None)
+    if hasattr(get_store, "cache_clear"):
+        get_store.cache_clear()
+
+
 @pytest.fixture(autouse=True)
 def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch):
     """Own working directory, dataset cache and store; clean environment for subprocesses.
@@ -98,7 +109,9 @@ def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
     monkeypatch.setenv("ACRMDN_CACHE", str(cache))
     monkeypatch.setenv("PYTHONPATH", str(REPO))
     monkeypatch.chdir(work)  # the default stores (sqlite:///mlflow.db, optuna.journal) are the test's own
+    _forget_mlflow_stores()
     yield work
+    _forget_mlflow_stores()
     known = _entries(pool)
     for stem, (npz, meta) in _entries(cache).items():
         if stem not in known and _valid(npz, meta):

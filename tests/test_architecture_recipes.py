@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 from mlflow import MlflowClient
@@ -57,7 +58,9 @@ def test_a_toy_task_and_a_toy_variant_run_through_a_smoke_study(toy_module, monk
     from experiments.cli import main
 
     assert "toy-reach" in TASKS and "toy-ac-lstm" in VARIANTS
-    uri = "sqlite:///mlflow.db"  # the test's own working directory (tests/conftest.py)
+    # the test's own working directory (tests/conftest.py), as an absolute URI: MLflow caches a store per URI
+    # string, and a relative one would reach this folder's database from every later test in this process
+    uri = f"sqlite:///{Path.cwd() / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     code = main(["ablation", "--profile", "smoke", "--tasks", "toy-reach", "--variants", "lstm", "toy-ac-lstm",
                  "--workers", "1", "--set", "eval.rollouts=2", "--set", "eval.figures=0"])
