@@ -1,0 +1,23 @@
+"""The robot, the tasks and their demonstrations, in pybullet."""
+
+import os
+import sys
+
+
+def _import_pybullet_quietly() -> None:
+    """pybullet prints its build time on stderr (from C) when first imported, which turns the
+    one-line errors of the command-line tools into two lines: import it once with fd 2 muted."""
+    if "pybullet" in sys.modules:
+        return
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        import pybullet  # noqa: F401
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+_import_pybullet_quietly()

@@ -2,26 +2,33 @@
 study's parent run; FINISHED cells with the same config hash are skipped, unfinished ones
 resume in their own run from its checkpoint artifact, failures are recorded and summarised.
 
-The main process creates the store, the experiment, the parent run and every child run
-(serialising schema creation and run creation); cells then run in K spawned processes that
-log through MlflowClient (with retries on SQLite lock contention)."""
+The main process creates the store, the experiment, the parent run and every child run; cells
+then run in K spawned processes (experiments/procs.py: they stop with the main process) that
+log through MlflowClient (with retries on SQLite lock contention). Each cell is claimed in the
+store before it trains (experiments/claims.py): a second command of the same study started
+meanwhile waits for the cells the first one trains instead of training them again, and both
+report the same table."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import multiprocessing as mp
 import os
+import shlex
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from experiments.cells import Cell, build_cells
+from experiments.claims import Claimed, claimed_cell, is_live
 from experiments.config import StudyConfig
+from experiments.procs import worker_pool
 from experiments.tracking import (
+    ABLATION,
+    NOTE_TAG,
     PARENT_TAG,
     Client,
     child_runs,
@@ -31,12 +38,13 @@ from experiments.tracking import (
     provenance_params,
     runs_page_url,
     set_tags,
+    settle_parent_run,
     tracking_uri,
 )
-from experiments.worker import CellResult, mark_killed, run_cell
+from experiments.worker import CellResult, mark_killed
 
 log = logging.getLogger(__name__)
-EXPERIMENT = "ablation"
+EXPERIMENT = ABLATION
 # One torch thread per cell: the models are small, so intra-op threads mostly spin; measured
 # on pick-place (2 cores, loaded machine) 2 threads cost ~10x the CPU time and ~5x the wall time
 # of 1 thread per iteration. Parallelism comes from the worker processes instead.
@@ -86,10 +94,29 @@ def prepare_runs(client: Client, experiment_id: str, parent_id: str, cells: list
         if runs:  # killed or failed before: resume in the same run
             run_id = runs[0].info.run_id
         else:
-            run_id = client.create_run(experiment_id, run_name=cell.key.replace("/", "-"),
+            run_id = client.create_run(experiment_id, run_name=cell.key,
                                        tags={k: str(v) for k, v in tags.items()}).info.run_id
         todo.append((cell, run_id))
-    return todo, skipped
+    return settle_cell_runs(client, experiment_id, parent_id, todo), skipped
+
+
+def settle_cell_runs(client: Client, experiment_id: str, parent_id: str, todo: list[tuple[Cell, str]]
+                     ) -> list[tuple[Cell, str]]:
+    """Two commands of one study preparing at once may each create a run for a cell: both settle
+    on the earliest (as for parent runs) and delete their own duplicate, so that the cell's
+    claim (experiments/claims.py) is taken on one run."""
+    by_hash: dict[str, list] = {}
+    for run in child_runs(client, experiment_id, parent_id):
+        by_hash.setdefault(run.data.tags.get("config_hash", ""), []).append(run)
+    out = []
+    for cell, run_id in todo:
+        runs = by_hash.get(cell.config_hash, [])
+        first = min(runs, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id if runs else run_id
+        if first != run_id and client.get_run(run_id).info.status == "RUNNING" and \
+                not client.get_run(run_id).data.params:
+            client.delete_run(run_id)  # ours, created a moment ago and never started
+        out.append((cell, first))
+    return out
 
 
 def prepare_datasets(cells: list[Cell]) -> None:
@@ -118,6 +145,7 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     experiment_id = get_or_create_experiment(client, EXPERIMENT)
     parent_id = get_or_create_parent_run(client, experiment_id, study_name,
                                          {"kind": "ablation", "profile": cfg.profile})
+    parent_id = settle_parent_run(client, experiment_id, study_name, parent_id)
     log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
                                    "study_hash": cfg.study_hash(), **provenance_params()})
     outcome = StudyOutcome(experiment_id, parent_id, study_name)
@@ -131,71 +159,82 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     log.info("study %r: %d cells (%d to run, %d done) with %d worker(s); store %s", study_name, len(cells),
              len(todo), len(outcome.skipped), workers, uri)
     level = logging.getLogger().getEffectiveLevel()
+    claim = (cfg.sweep.heartbeat, cfg.sweep.grace_period)
     bar = _progress(len(todo), interactive)
+    held: list[tuple[Cell, str]] = []
     try:
         if workers == 1:
             for cell, run_id in todo:
-                res = run_cell(cell, uri, run_id, progress=interactive, log_level=level,
-                               threads=TORCH_THREADS)
-                _record(outcome, res, bar, len(todo), interactive)
+                got = claimed_cell(cell.to_dict(), uri, run_id, interactive, level, TORCH_THREADS, *claim, False)
+                _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
         else:
-            _run_parallel(todo, uri, workers, outcome, bar, level, interactive)
+            _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, held)
+        for cell, run_id in held:  # cells another command of this study trains: wait for them
+            got = claimed_cell(cell.to_dict(), uri, run_id, interactive, level, TORCH_THREADS, *claim, True)
+            _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
     except KeyboardInterrupt:
         # interrupted cells are KILLED with their last checkpoint artifact: a re-run resumes them
         done = {r.run_id for r in outcome.results}
-        mark_killed(client, [run_id for _, run_id in todo if run_id not in done])
+        runs = [client.get_run(run_id) for _, run_id in todo if run_id not in done]
+        # not a cell another command of this study is training (it holds a live claim on it)
+        mark_killed(client, [r.info.run_id for r in runs if not is_live(r, cfg.sweep.grace_period)])
         client.set_terminated(parent_id, "KILLED")
         raise
     finally:
         bar.close()
     outcome.seconds = time.perf_counter() - start
-    status = "FAILED" if outcome.failures else "FINISHED"
-    set_tags(client, parent_id, {"cells": len(cells), "failed_cells": len(outcome.failures),
-                                 "skipped_cells": len(outcome.skipped)})
-    client.log_metric(parent_id, "time/study_seconds", outcome.seconds)
-    client.set_terminated(parent_id, status)
+    finish_parent(client, outcome, len(cells), "ablation")
     return outcome
 
 
-def _record(outcome: StudyOutcome, res: CellResult, bar, total: int, interactive: bool) -> None:
-    outcome.results.append(res)
+def finish_parent(client: Client, outcome: StudyOutcome, n_cells: int, kind: str) -> None:
+    """Close the parent run: counts, duration, a Markdown description (the MLflow UI shows it
+    on the run's page) and its status."""
+    set_tags(client, outcome.parent_run_id, {"cells": n_cells, "failed_cells": len(outcome.failures),
+                                             "skipped_cells": len(outcome.skipped)})
+    client.log_metric(outcome.parent_run_id, "time/study_seconds", outcome.seconds)
+    client.set_tag(outcome.parent_run_id, NOTE_TAG, study_note(outcome, client, kind)[:60000])
+    client.set_terminated(outcome.parent_run_id, "FAILED" if outcome.failures else "FINISHED")
+
+
+def _record(outcome: StudyOutcome, cell: Cell, run_id: str, got: Claimed, bar, total: int, interactive: bool,
+            held: list) -> None:
+    if got.kind == "held":
+        held.append((cell, run_id))
+        log.info("%s: another command of this study is training it; waiting for it at the end", cell.key)
+        return
     bar.update(1)
+    if got.kind == "done":
+        outcome.skipped.append(cell.key)
+        log.info("[%d/%d] %s FINISHED by another command of this study", len(outcome.results) +
+                 len(outcome.skipped), total, cell.key)
+        return
+    res = got.result
+    outcome.results.append(res)
     if not interactive:
         log.info("[%d/%d] %s %s in %.0fs%s", len(outcome.results), total, res.key, res.status, res.seconds,
                  f": {res.error}" if res.error else "")
 
 
-@contextlib.contextmanager
-def _stop_on_interrupt(pool: ProcessPoolExecutor):
-    """On Ctrl-C, stop the workers now (the pool's own exit would run every queued cell first)."""
-    try:
-        yield
-    except KeyboardInterrupt:
-        for proc in list((pool._processes or {}).values()):  # no public API to stop running calls
-            proc.terminate()
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
-
-
-def _run_parallel(todo, uri, workers, outcome, bar, level, interactive) -> None:
-    ctx = mp.get_context("spawn")  # fresh interpreters: no forked torch/pybullet/sqlite state
+def _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, held) -> None:
     pending = {}
     try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool, _stop_on_interrupt(pool):
+        with worker_pool(workers) as pool:
             for cell, run_id in todo:
-                fut = pool.submit(run_cell, cell, uri, run_id, False, level, TORCH_THREADS)
+                fut = pool.submit(claimed_cell, cell.to_dict(), uri, run_id, False, level, TORCH_THREADS, *claim,
+                                  False)
                 pending[fut] = (cell, run_id)
             for fut in as_completed(pending):
                 cell, run_id = pending[fut]
                 try:
-                    res = fut.result()
+                    got = fut.result()
                 except BrokenProcessPool:
                     raise
                 except Exception as exc:  # e.g. a result that failed to pickle
-                    res = CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}")
-                _record(outcome, res, bar, len(todo), interactive)
+                    got = Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}"))
+                _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
     except BrokenProcessPool as exc:
-        done = {r.run_id for r in outcome.results}
+        done = {r.run_id for r in outcome.results} | {run_id for _, run_id in held}
         client = Client(uri)
         for cell, run_id in todo:
             if run_id not in done:
@@ -205,7 +244,8 @@ def _run_parallel(todo, uri, workers, outcome, bar, level, interactive) -> None:
                     client.set_terminated(run_id, "FAILED")
                 except Exception:
                     log.exception("could not mark run %s FAILED", run_id)
-                _record(outcome, CellResult(cell.key, run_id, "FAILED", error=text), bar, len(todo), interactive)
+                _record(outcome, cell, run_id, Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=text)),
+                        bar, len(todo), interactive, held)
 
 
 def success_table(client: Client, experiment_id: str, parent_id: str) -> str:
@@ -220,6 +260,27 @@ def success_table(client: Client, experiment_id: str, parent_id: str) -> str:
     seen = list(dict.fromkeys(evals["variant"]))
     order = [v for v in VARIANTS if v in seen] + sorted(set(seen) - set(VARIANTS))
     return table(success_cells(evals, order)).to_markdown(index=False, disable_numparse=True)
+
+
+def command_line() -> str:
+    """The command that ran this study, as the user would type it (no path of this machine)."""
+    if Path(sys.argv[0]).parent.name == "experiments" or sys.argv[0] == "-m":
+        return shlex.join(["python", "-m", "experiments", *sys.argv[1:]])
+    return ""
+
+
+def study_note(outcome: StudyOutcome, client: Client, kind: str) -> str:
+    """The parent run's description (Markdown): headline table, command, report."""
+    lines = [f"**{kind} study `{outcome.study_name}`**: {len(outcome.results)} cell(s) run, "
+             f"{len(outcome.skipped)} skipped (already FINISHED), {len(outcome.failures)} failed, "
+             f"{outcome.seconds:.0f} s.", "",
+             "Success rate (mean over seeds; rollouts = evaluation episodes pooled over seeds):", "",
+             success_table(client, outcome.experiment_id, outcome.parent_run_id), ""]
+    if command_line():
+        lines += ["Command:", "", f"    {command_line()}", ""]
+    lines.append(f"Report: `python -m reports --study {outcome.study_name}` writes "
+                 f"`reports/out/{outcome.study_name}/index.html`.")
+    return "\n".join(lines)
 
 
 def summary_text(outcome: StudyOutcome, client: Client) -> str:

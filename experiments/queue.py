@@ -16,14 +16,14 @@ RUNNING, so the last one out writes a complete summary. We keep no scheduler of 
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import time
-from concurrent.futures import ProcessPoolExecutor
 
-from experiments.ablation import EXPERIMENT, TORCH_THREADS, StudyOutcome, prepare_datasets, prepare_runs
+from experiments.ablation import EXPERIMENT, TORCH_THREADS, StudyOutcome, finish_parent, prepare_datasets, prepare_runs
 from experiments.cells import Cell, build_cells
+from experiments.claims import claimed_cell
 from experiments.config import ConfigError, StudyConfig, from_dict
-from experiments.sweep import fail_dead_trials, has_heartbeat, open_storage, worker_id
+from experiments.procs import worker_pool
+from experiments.sweep_storage import describe, drain, open_storage, trials_in, worker_id
 from experiments.tracking import (
     Client,
     child_runs,
@@ -36,7 +36,7 @@ from experiments.tracking import (
     sqlite_path,
     tracking_uri,
 )
-from experiments.worker import CellResult, run_cell
+from experiments.worker import CellResult
 
 log = logging.getLogger(__name__)
 QUEUE_PREFIX = "ablation-cells:"
@@ -57,15 +57,9 @@ def resolve_queue(url: str | None, uri: str | None = None) -> str:
     return url
 
 
-def _states(study, *names: str) -> list:
-    from optuna.trial import TrialState
-
-    return study.get_trials(deepcopy=False, states=tuple(TrialState[n] for n in names))
-
-
 def enqueue_missing(study, cells: list[Cell], finished: set[str]) -> int:
     """Queue every cell that is neither FINISHED in MLflow nor WAITING/RUNNING in the queue."""
-    queued = {t.user_attrs.get("config_hash") for t in _states(study, "WAITING", "RUNNING")}
+    queued = {t.user_attrs.get("config_hash") for t in trials_in(study, "WAITING", "RUNNING")}
     new = [c for c in cells if c.config_hash not in finished | queued]
     for cell in new:
         study.enqueue_trial({}, user_attrs={"config_hash": cell.config_hash, "cell": cell.key},
@@ -78,8 +72,8 @@ def finished_hashes(client: Client, experiment_id: str, parent_id: str) -> set[s
             if r.info.status == "FINISHED"}
 
 
-def _cell_objective(cells: dict[str, Cell], client: Client, uri: str, experiment_id: str, parent_id: str,
-                    level: int, ran: list[CellResult]):
+def _cell_objective(cfg: StudyConfig, cells: dict[str, Cell], client: Client, uri: str, experiment_id: str,
+                    parent_id: str, level: int, ran: list[CellResult]):
     def objective(trial) -> float:
         import optuna
 
@@ -92,7 +86,7 @@ def _cell_objective(cells: dict[str, Cell], client: Client, uri: str, experiment
         if h in finished_hashes(client, experiment_id, parent_id):
             trial.set_user_attr("skipped", "already FINISHED")
             return 0.0
-        earlier = [t for t in _states(trial.study, "WAITING", "RUNNING")
+        earlier = [t for t in trials_in(trial.study, "WAITING", "RUNNING")
                    if t.user_attrs.get("config_hash") == h and t.number < trial.number]
         if earlier:  # queued twice by workers that started together: the earlier entry runs it
             trial.set_user_attr("skipped", f"duplicate of queue entry {earlier[0].number}")
@@ -101,7 +95,13 @@ def _cell_objective(cells: dict[str, Cell], client: Client, uri: str, experiment
         trial.set_user_attr("mlflow_run_id", run_id)
         set_tags(client, run_id, {"worker": worker_id(), "queue_entry": trial.number})
         log.info("worker %s: cell %s (queue entry %d, run %s)", worker_id(), cell.key, trial.number, run_id)
-        res = run_cell(cell.to_dict(), uri, run_id, progress=False, log_level=level, threads=TORCH_THREADS)
+        # the claim waits out a dead worker's claim on the run (on another host: up to the grace period)
+        got = claimed_cell(cell.to_dict(), uri, run_id, False, level, TORCH_THREADS, cfg.sweep.heartbeat,
+                           cfg.sweep.grace_period, True)
+        if got.kind == "done":
+            trial.set_user_attr("skipped", "FINISHED by another command")
+            return 0.0
+        res = got.result
         ran.append(res)
         if res.status != "FINISHED":
             raise RuntimeError(res.error)  # the queue entry FAILs too; a re-run queues the cell again
@@ -124,21 +124,10 @@ def _work(cfg_dict: dict, queue_url: str, uri: str, experiment_id: str, parent_i
                               storage=open_storage(queue_url, cfg.sweep, uri),
                               sampler=optuna.samplers.RandomSampler())
     ran: list[CellResult] = []
-    objective = _cell_objective(cells, client, uri, experiment_id, parent_id, level, ran)
-    announced = False
-    while True:
-        fail_dead_trials(study)  # dead workers' cells go back to WAITING
-        if _states(study, "WAITING"):
-            study.optimize(objective, n_trials=1, catch=(Exception,))
-            continue
-        running = _states(study, "RUNNING")
-        if not running:
-            return ran
-        if not announced:
-            log.info("queue empty; waiting for %d cell(s) held by other workers: %s", len(running),
-                     ", ".join(f"{t.user_attrs.get('cell')} ({t.user_attrs.get('worker', '?')})" for t in running))
-            announced = True
-        time.sleep(cfg.sweep.heartbeat)
+    objective = _cell_objective(cfg, cells, client, uri, experiment_id, parent_id, level, ran)
+    # dead workers' cells go back to WAITING and are taken like the others
+    drain(study, lambda: study.optimize(objective, n_trials=1, catch=(Exception,)), cfg.sweep.heartbeat, "cell")
+    return ran
 
 
 def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
@@ -155,15 +144,14 @@ def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
     client = Client(uri)
     experiment_id = get_or_create_experiment(client, EXPERIMENT)
     parent_id = get_or_create_parent_run(client, experiment_id, study_name,
-                                         {"kind": "ablation", "profile": cfg.profile, "queue": queue_url})
+                                         {"kind": "ablation", "profile": cfg.profile, "queue": describe(queue_url)})
     parent_id = settle_parent_run(client, experiment_id, study_name, parent_id)
     log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
                                    "study_hash": cfg.study_hash(), **provenance_params()})
-    storage = open_storage(queue_url, cfg.sweep, uri)
-    assert has_heartbeat(storage)
+    storage = open_storage(queue_url, cfg.sweep, uri)  # an RDB storage (resolve_queue): heartbeats on
     study = optuna.create_study(study_name=QUEUE_PREFIX + study_name, storage=storage, load_if_exists=True)
     added = enqueue_missing(study, cells, finished_hashes(client, experiment_id, parent_id))
-    log.info("study %r: %d cells, %d newly queued; queue %s", study_name, len(cells), added, queue_url)
+    log.info("study %r: %d cells, %d newly queued; queue %s", study_name, len(cells), added, describe(queue_url))
     prepare_datasets(cells)  # cached per host: built once, not in every process
     level = logging.getLogger().getEffectiveLevel()
     args = (cfg.to_dict(), queue_url, uri, experiment_id, parent_id, level)
@@ -173,7 +161,7 @@ def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
         if workers == 1:
             ran = _work(*args)
         else:
-            with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+            with worker_pool(workers) as pool:
                 ran = [r for f in [pool.submit(_work, *args) for _ in range(workers)] for r in f.result()]
     except KeyboardInterrupt:
         # this worker's cells stop beating: another worker (or a re-run after the grace period) retries them
@@ -196,6 +184,5 @@ def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
             outcome.results.append(CellResult(cell.key, run.info.run_id, "FAILED",
                                               error=run.data.tags.get("error", run.info.status)))
     outcome.seconds = time.perf_counter() - start
-    set_tags(client, parent_id, {"cells": len(cells), "failed_cells": len(outcome.failures)})
-    client.set_terminated(parent_id, "FAILED" if outcome.failures else "FINISHED")
+    finish_parent(client, outcome, len(cells), "ablation (queue)")
     return outcome

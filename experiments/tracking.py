@@ -1,11 +1,12 @@
-"""MLflow tracking helpers: where the store is, a client that retries on SQLite lock
-contention, experiments and parent runs, batched metrics, flattened params.
+"""MLflow tracking: the one home of what experiments/ and reports/ share about the store (its
+URI, tags, experiment names, statuses), a client that retries on SQLite lock contention,
+experiments and parent runs, batched metrics, flattened params.
 
-The store defaults to `sqlite:///mlflow.db` in the working directory (made absolute so that
-worker processes agree on it) with artifacts in `mlartifacts/` beside it; MLFLOW_TRACKING_URI
-overrides both. The main process creates the store, the experiment and the parent run before
-any worker starts (several processes migrating a fresh SQLite schema at once would race);
-workers only log through `MlflowClient`.
+The store defaults to `sqlite:///mlflow.db`, relative to the working directory (worker
+processes start in the same one, and no generated file names a path of this machine), with
+artifacts in `mlartifacts/` beside the db file; MLFLOW_TRACKING_URI overrides both. Creating
+a fresh SQLite schema is serialised by a lock file beside the db (two studies started at the
+same moment in a fresh folder would otherwise race on MLflow's migrations).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from __future__ import annotations
 import functools
 import logging
 import os
-import random
 import subprocess
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -21,39 +21,51 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import tenacity
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
 log = logging.getLogger(__name__)
 
 DEFAULT_DB = "mlflow.db"
+DEFAULT_TRACKING_URI = f"sqlite:///{DEFAULT_DB}"
 PARENT_TAG = "mlflow.parentRunId"
+NOTE_TAG = "mlflow.note.content"  # a run's description in the MLflow UI (Markdown)
+KIND_TAG = "mlflow.experimentKind"
+# without this kind MLflow 3 opens an experiment in its GenAI layout (traces, prompts) instead of its runs
+EXPERIMENT_KIND = "custom_model_development"
+FAILED_STATUSES = ("FAILED", "KILLED")  # a cell or trial run that did not finish: a gap in a report
+ABLATION, SWEEP, SMOOTHING, IDM = "ablation", "sweep", "smoothing", "idm"
+STUDY_KINDS = (ABLATION, SWEEP, SMOOTHING, IDM)  # one MLflow experiment per study kind
 PACKAGES = ("torch", "numpy", "pybullet", "pytorch-kinematics", "mlflow", "optuna", "scipy", "acrmdn")
 _RETRY_MARKERS = ("database is locked", "database table is locked", "sqlite3.OperationalError", "disk I/O error")
 
 
 def tracking_uri() -> str:
-    """MLFLOW_TRACKING_URI if set, else an absolute sqlite URI for ./mlflow.db."""
-    uri = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
-    if not uri:
-        return f"sqlite:///{(Path.cwd() / DEFAULT_DB).resolve()}"
-    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
-        # relative sqlite path: pin it to the current directory for the worker processes
-        return f"sqlite:///{(Path.cwd() / uri.removeprefix('sqlite:///')).resolve()}"
-    return uri
+    """MLFLOW_TRACKING_URI if set, else `sqlite:///mlflow.db` (relative to the working directory)."""
+    return os.environ.get("MLFLOW_TRACKING_URI", "").strip() or DEFAULT_TRACKING_URI
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The db file of a local SQLite store (relative if the URI is), else None."""
+    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
 
 
 def store_dir(uri: str) -> Path:
     """The folder that holds a local store (its db file), else the working directory."""
-    if uri.startswith("sqlite:///"):
-        return Path(uri.removeprefix("sqlite:///")).parent
+    db = sqlite_path(uri)
+    if db is not None:
+        return db.parent
     if uri.startswith("file:"):
         return Path(uri.removeprefix("file://"))
-    return Path.cwd()
+    return Path(".")
 
 
-def sqlite_path(uri: str) -> Path | None:
-    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
+def schema_lock(db: Path):
+    """An inter-process lock beside a SQLite db file, held while a process may create its schema."""
+    from filelock import FileLock
+
+    return FileLock(f"{db}.lock", timeout=120)
 
 
 def _is_transient(exc: BaseException) -> bool:
@@ -62,21 +74,11 @@ def _is_transient(exc: BaseException) -> bool:
 
 
 def with_retries(fn: Callable, attempts: int = 8, base_delay: float = 0.05) -> Callable:
-    """Retry a store call on SQLite lock contention with exponential backoff and jitter."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        for attempt in range(attempts):
-            try:
-                return fn(*args, **kwargs)
-            except Exception as exc:  # MlflowException wraps sqlalchemy's OperationalError
-                if attempt == attempts - 1 or not _is_transient(exc):
-                    raise
-                delay = base_delay * (2**attempt) * (1 + random.random())
-                log.debug("store busy (%s); retrying in %.2fs", exc, delay)
-                time.sleep(delay)
-
-    return wrapper
+    """Retry a store call on SQLite lock contention (exponential backoff with full jitter)."""
+    return tenacity.retry(retry=tenacity.retry_if_exception(_is_transient), reraise=True,
+                          stop=tenacity.stop_after_attempt(attempts),
+                          wait=tenacity.wait_random_exponential(multiplier=base_delay, max=10),
+                          before_sleep=tenacity.before_sleep_log(log, logging.DEBUG))(fn)
 
 
 class Client:
@@ -84,7 +86,13 @@ class Client:
 
     def __init__(self, uri: str | None = None):
         self.uri = uri or tracking_uri()
-        self._client = with_retries(MlflowClient)(tracking_uri=self.uri)
+        db = sqlite_path(self.uri)
+        if db is None:
+            self._client = MlflowClient(tracking_uri=self.uri)
+            return
+        with schema_lock(db):  # opening a fresh store creates (migrates) its schema: one process at a time
+            self._client = with_retries(MlflowClient)(tracking_uri=self.uri)
+            with_retries(self._client.search_experiments)(max_results=1)
 
     def __getattr__(self, name: str) -> Any:
         attr = getattr(self._client, name)
@@ -92,22 +100,29 @@ class Client:
 
 
 def get_or_create_experiment(client: Client, name: str) -> str:
+    """The experiment of a study kind, tagged as model development (the UI then opens on its runs)."""
     exp = client.get_experiment_by_name(name)
-    if exp is not None:
-        if exp.lifecycle_stage == "deleted":
-            client.restore_experiment(exp.experiment_id)
-        return exp.experiment_id
-    location = None
-    db = sqlite_path(client.uri)
-    if db is not None:  # keep artifacts beside the db file, not in whatever cwd a later run uses
-        location = (db.parent / "mlartifacts" / name).as_uri()
-    try:
-        return client.create_experiment(name, artifact_location=location)
-    except Exception:
-        exp = client.get_experiment_by_name(name)  # created concurrently
-        if exp is None:
-            raise
-        return exp.experiment_id
+    if exp is None:
+        location = None
+        db = sqlite_path(client.uri)
+        if db is not None:  # keep artifacts beside the db file, not in whatever cwd a later run uses
+            location = (db.resolve().parent / "mlartifacts" / name).as_uri()
+        try:
+            exp = client.get_experiment(client.create_experiment(name, artifact_location=location,
+                                                                 tags={KIND_TAG: EXPERIMENT_KIND}))
+        except Exception:
+            exp = client.get_experiment_by_name(name)  # created concurrently
+            if exp is None:
+                raise
+    if exp.lifecycle_stage == "deleted":
+        client.restore_experiment(exp.experiment_id)
+    if exp.tags.get(KIND_TAG) != EXPERIMENT_KIND:  # an experiment created before the kind was set
+        try:
+            client.set_experiment_tag(exp.experiment_id, KIND_TAG, EXPERIMENT_KIND)
+        except Exception:  # another process set it at the same moment (a unique-key violation)
+            if client.get_experiment(exp.experiment_id).tags.get(KIND_TAG) != EXPERIMENT_KIND:
+                raise
+    return exp.experiment_id
 
 
 def find_parent_run(client: Client, experiment_id: str, study_name: str):

@@ -10,10 +10,9 @@ import subprocess
 import sys
 import time
 
-from experiments.tracking import runs_page_url, sqlite_path, tracking_uri
+from experiments.tracking import STUDY_KINDS, runs_page_url, sqlite_path, tracking_uri
 
 log = logging.getLogger(__name__)
-KINDS = ("ablation", "sweep", "smoothing", "idm")
 
 
 def experiment_links(uri: str, host: str, port: int) -> list[str]:
@@ -26,7 +25,7 @@ def experiment_links(uri: str, host: str, port: int) -> list[str]:
 
     client = Client(uri)
     links = []
-    for kind in KINDS:
+    for kind in STUDY_KINDS:
         exp = client.get_experiment_by_name(kind)
         if exp is not None:
             links.append(f"{kind}: {runs_page_url(exp.experiment_id, host, port)}")

@@ -1,10 +1,11 @@
 """Load studies from the MLflow tracking store into tidy pandas DataFrames.
 
-Artifact contract (what reports reads; the experiments side writes it; also in /work/notes/artifacts.md)
------------------------------------------------------------------------------------------------------
-Runs: one experiment per study kind ("ablation", "sweep", ...). Parent run = no `mlflow.parentRunId`
-tag; tags `kind`, `profile`, `study_name`. Child run: tag `mlflow.parentRunId`, tags `task` (training
-task), `variant`, `seed`, `profile`, `config_hash`; status FAILED/KILLED = a failed cell (a gap).
+Artifact contract (what reports reads; the experiments side writes it)
+----------------------------------------------------------------------
+Runs: one experiment per study kind (experiments.tracking.STUDY_KINDS). Parent run = no
+`mlflow.parentRunId` tag (experiments.tracking.PARENT_TAG); tags `kind`, `profile`, `study_name`.
+Child run: tag `mlflow.parentRunId`, tags `task` (training task), `variant`, `seed`, `profile`,
+`config_hash`; status FAILED/KILLED = a failed cell (a gap).
 Child metrics, per evaluated task E: `E/success_rate` (0..1), `E/success_ci_low`, `E/success_ci_high`,
 `E/n_rollouts`, `E/final_distance_mean` (m); circle per radius R cm (`f"{R:g}"`):
 `circle/r{R}/radial_rmse` (m), `circle/r{R}/max_radial_error_pct` (% of r); `train/loss`
@@ -40,17 +41,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from experiments.tracking import DEFAULT_TRACKING_URI, FAILED_STATUSES, PARENT_TAG, sqlite_path, tracking_uri
+
 log = logging.getLogger(__name__)
 
-DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
-PARENT_TAG = "mlflow.parentRunId"
-FAILED_STATUSES = ("FAILED", "KILLED")
-# Eval task -> training task, used only when neither the store nor the envs registry says.
-FALLBACK_MODEL_TASK = {
-    "reacher": "reacher", "reacher-changing-goal": "reacher",
-    "pick-place": "pick-place", "stack": "pick-place", "pick-place-changing-goal": "pick-place",
-    "circle": "circle",
-}
+__all__ = ["DEFAULT_TRACKING_URI", "Store", "StoreError", "Study", "order_variants", "tracking_uri"]
 EVAL_METRIC = re.compile(r"^metrics\.(?P<task>[^/]+)/(?P<name>success_rate|success_ci_low|success_ci_high|"
                          r"n_rollouts|final_distance_mean)$")
 CIRCLE_METRIC = re.compile(r"^metrics\.circle/r(?P<r>\d+(?:\.\d+)?)/(?P<name>radial_rmse|max_radial_error_pct)$")
@@ -58,16 +53,6 @@ CIRCLE_METRIC = re.compile(r"^metrics\.circle/r(?P<r>\d+(?:\.\d+)?)/(?P<name>rad
 
 class StoreError(Exception):
     """A problem with the store or the selection, reported as one line (exit code 2)."""
-
-
-def tracking_uri() -> str:
-    return os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_TRACKING_URI
-
-
-def _sqlite_path(uri: str) -> Path | None:
-    if not uri.startswith("sqlite:///"):
-        return None
-    return Path(uri[len("sqlite:///"):])
 
 
 @dataclass
@@ -155,7 +140,7 @@ class Study:
 
     def model_task_of(self, eval_task: str) -> str:
         """The training task whose runs evaluate `eval_task`: from the runs' metrics or `eval_tasks` tags, else
-        the paper's tasks, else the envs registry (imported only then: it pulls in torch and pybullet)."""
+        the envs registry (imported only then: it pulls in torch and pybullet)."""
         em = self.eval_metrics()
         seen = em.loc[em["eval_task"] == eval_task, "task"].dropna().unique() if not em.empty else []
         if len(seen):
@@ -164,8 +149,6 @@ class Study:
             for task, listed in zip(self.children["task"], self.children["tags.eval_tasks"], strict=True):
                 if isinstance(listed, str) and eval_task in listed.split(","):
                     return str(task)
-        if eval_task in FALLBACK_MODEL_TASK:
-            return FALLBACK_MODEL_TASK[eval_task]
         try:  # reports may read envs constants (dependencies point reports -> envs)
             from envs.tasks import get_task
             return get_task(eval_task).model_task
@@ -225,14 +208,13 @@ class Study:
             return None
 
 
-VARIANT_ORDER = ("lstm", "ac-lstm", "lstm-mdn", "ac-lstm-mdn")
-
-
 def order_variants(names) -> list[str]:
-    """The paper's order first (Table I), then the others alphabetically."""
+    """The registry's order first (stm.registry: the paper's Table I), then the others alphabetically."""
+    from stm.registry import VARIANTS
+
     names = [str(n) for n in names]
-    known = [v for v in VARIANT_ORDER if v in names]
-    return known + sorted(n for n in set(names) if n not in VARIANT_ORDER)
+    known = [v for v in VARIANTS if v in names]
+    return known + sorted(n for n in set(names) if n not in VARIANTS)
 
 
 def _melt(children: pd.DataFrame, pattern: re.Pattern, group: str, out_col: str) -> pd.DataFrame:
@@ -258,16 +240,13 @@ class Store:
     """Read-only view of a tracking store (never creates one)."""
 
     def __init__(self, uri: str | None = None):
-        import mlflow
         from mlflow import MlflowClient
 
         os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # no bar per small download
         self.uri = uri or tracking_uri()
-        path = _sqlite_path(self.uri)
+        path = sqlite_path(self.uri)
         if path is not None:
             _check_sqlite_store(path, self.uri)
-        mlflow.set_tracking_uri(self.uri)  # mlflow.search_runs reads the global URI
-        self._mlflow = mlflow
         try:
             self.client = MlflowClient(self.uri)
         except Exception as exc:  # noqa: BLE001 - e.g. an unreachable server
@@ -282,9 +261,16 @@ class Store:
         return {e.name: e.experiment_id for e in exps}
 
     def _runs(self, experiment_ids: list[str], filter_string: str = "") -> pd.DataFrame:
-        df = self._mlflow.search_runs(experiment_ids=experiment_ids, filter_string=filter_string,
-                                      output_format="pandas")
-        return df if isinstance(df, pd.DataFrame) else pd.DataFrame()
+        """The runs as one row each, columns named as mlflow.search_runs names them (run_id, status,
+        start_time, ..., metrics.X, params.X, tags.X), read through this store's own client."""
+        runs, token = [], None
+        while True:
+            page = self.client.search_runs(experiment_ids, filter_string, max_results=5000, page_token=token)
+            runs += page
+            token = page.token
+            if not token:
+                break
+        return _runs_frame(runs)
 
     def parents(self, experiment: str | None = None) -> pd.DataFrame:
         """Parent runs (newest first) of one experiment or of all."""
@@ -344,6 +330,23 @@ def _check_sqlite_store(path: Path, uri: str) -> None:
         raise StoreError(f"{path} is not an MLflow store ({exc})") from None
     if not {"experiments", "runs"} <= tables:
         raise StoreError(f"{path} is not an MLflow store (no experiments/runs tables)")
+
+
+def _runs_frame(runs) -> pd.DataFrame:
+    rows = []
+    for r in runs:
+        row = {"run_id": r.info.run_id, "experiment_id": r.info.experiment_id, "status": r.info.status,
+               "artifact_uri": r.info.artifact_uri, "start_time": r.info.start_time, "end_time": r.info.end_time}
+        row.update({f"metrics.{k}": v for k, v in r.data.metrics.items()})
+        row.update({f"params.{k}": v for k, v in r.data.params.items()})
+        row.update({f"tags.{k}": v for k, v in r.data.tags.items()})
+        rows.append(row)
+    if not rows:
+        return pd.DataFrame()
+    df = pd.DataFrame(rows)
+    for col in ("start_time", "end_time"):  # epoch ms -> UTC timestamps, as mlflow.search_runs gives them
+        df[col] = pd.to_datetime(df[col], unit="ms", utc=True)
+    return df
 
 
 def _clean(row: dict[str, Any]) -> dict[str, Any]:

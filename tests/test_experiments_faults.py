@@ -1,7 +1,9 @@
 """Faults on one machine (issue 9): Ctrl-C during a study, a corrupt checkpoint artifact, a
 NaN loss in one cell, a tracking server that is down and a SQLite store that is locked at
-start. (A cell killed with SIGKILL mid-training: tests/test_experiments_e2e.py; a damaged
-dataset cache: tests/test_datasets.py; foreign checkpoints: tests/test_stm_train.py.)"""
+start, a sweep killed mid-trial and re-run (issue 19: it exits 0 once the retry completes). Process
+and concurrency faults: tests/test_experiments_concurrency.py. (A cell killed with SIGKILL
+mid-training: tests/test_experiments_e2e.py; a damaged dataset cache: tests/test_datasets.py;
+foreign checkpoints: tests/test_stm_train.py.)"""
 
 from __future__ import annotations
 
@@ -236,3 +238,46 @@ def test_store_locked_for_a_moment_is_waited_for(tmp_path):
     wait_for_stores(f"sqlite:///{tmp_path / 'mlflow.db'}", attempts=6, delay=0.2)
     timer.join()
     assert time.monotonic() - start >= 0.5  # it did wait for the lock, then went on
+
+
+@pytest.mark.slow
+def test_sweep_that_recovers_from_a_killed_trial_exits_0_with_its_parent_finished(tmp_path):
+    import optuna
+    from optuna.trial import TrialState
+
+    args = [sys.executable, "-m", "experiments", "sweep", "--profile", "smoke", "--workers", "1", "--trials", "1",
+            "--study-name", "rec", "--set", "train.iters=400", "--set", "train.val_every=20"]
+    journal = tmp_path / "optuna.journal"
+    proc = subprocess.Popen(args, cwd=tmp_path, env=_env(tmp_path), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    killed = False
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None and not killed:
+            time.sleep(0.3)
+            if not journal.exists():
+                continue
+            storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(journal)))
+            try:
+                trials = optuna.load_study(study_name="rec", storage=storage).get_trials(deepcopy=False)
+            except KeyError:  # not created yet
+                continue
+            if trials and trials[0].state == TrialState.RUNNING and trials[0].intermediate_values:
+                os.killpg(proc.pid, signal.SIGKILL)
+                killed = True
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert killed, "the trial finished or never validated before the kill"
+    again = subprocess.run(args, cwd=tmp_path, env=_env(tmp_path), capture_output=True, text=True, timeout=400)
+    # before: exit 1 and the parent FAILED although the killed trial's retry completed the sweep
+    assert again.returncode == 0, again.stderr[-3000:]
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(journal)))
+    trials = optuna.load_study(study_name="rec", storage=storage).get_trials(deepcopy=False)
+    assert [t.state for t in trials] in ([TrialState.FAIL, TrialState.COMPLETE], [TrialState.FAIL, TrialState.PRUNED])
+    assert trials[1].params == trials[0].params and trials[1].system_attrs["failed_trial"] == 0
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    parent = client.search_runs([client.get_experiment_by_name("sweep").experiment_id], "tags.role = 'parent'")[0]
+    assert parent.info.status == "FINISHED"
+    assert "**sweep `rec`**" in parent.data.tags["mlflow.note.content"]

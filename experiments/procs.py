@@ -1,0 +1,85 @@
+"""Worker processes of a study or sweep: spawned (fresh interpreters: no forked torch, pybullet
+or SQLite state), and stopped with their main process.
+
+- Parent death: each worker watches its main process; when it dies (kill -9, OOM killer) the
+  worker exits within a second instead of training on alone. Its run stays RUNNING with its
+  last checkpoint artifact, so a re-run resumes it (and claims it at once: experiments/claims.py
+  sees that its holder is gone).
+- Stop (Ctrl-C in the main process): `stop` is set; a busy worker is interrupted (its cell is
+  marked KILLED, resumable), an idle one exits. A worker that does not stop within GRACE
+  seconds exits anyway.
+"""
+
+from __future__ import annotations
+
+import _thread
+import contextlib
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+
+GRACE = 10.0  # seconds an interrupted worker gets to mark its run before it exits anyway
+POLL = 0.5
+_busy = threading.Event()
+
+
+def _on_sigint(signum, frame) -> None:
+    if _busy.is_set():
+        raise KeyboardInterrupt  # the running cell or trial records the interruption
+    os._exit(130)
+
+
+def _watch(parent: int, stop) -> None:
+    while True:
+        if os.getppid() != parent:  # reparented: the main process is gone
+            os._exit(1)
+        if stop.is_set():
+            if _busy.is_set():
+                _thread.interrupt_main()  # runs _on_sigint in the main thread
+                time.sleep(GRACE)
+            os._exit(130)
+        time.sleep(POLL)
+
+
+def _init(parent: int, stop) -> None:
+    signal.signal(signal.SIGINT, _on_sigint)
+    threading.Thread(target=_watch, args=(parent, stop), name="parent-watch", daemon=True).start()
+
+
+def _call(fn: Callable, *args):
+    _busy.set()
+    try:
+        return fn(*args)
+    except KeyboardInterrupt:  # already recorded by fn; leave now, quietly
+        os._exit(130)
+    finally:
+        _busy.clear()
+
+
+class WorkerPool:
+    """ProcessPoolExecutor whose workers stop with the main process (see the module docstring)."""
+
+    def __init__(self, workers: int):
+        ctx = mp.get_context("spawn")
+        self.stop = ctx.Event()
+        self.executor = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init,
+                                            initargs=(os.getpid(), self.stop))
+
+    def submit(self, fn: Callable, *args) -> Future:
+        return self.executor.submit(_call, fn, *args)
+
+
+@contextlib.contextmanager
+def worker_pool(workers: int) -> Iterator[WorkerPool]:
+    pool = WorkerPool(workers)
+    try:
+        yield pool
+    except BaseException:  # Ctrl-C or an error in the main process: stop the workers now
+        pool.stop.set()
+        pool.executor.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.executor.shutdown(wait=True)
