@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
+from study_cli import kill_when
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -105,25 +106,9 @@ def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name", "killed",
             "--set", "train.iters=1500", "--set", "train.checkpoint_every=50", "--set", "train.val_every=0",
             "--set", "eval.figures=0", "--set", "eval.rollouts=2"]  # long enough to be caught mid-training
-    proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path, env=_env(tmp_path),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    run_id, deadline = None, time.monotonic() + 300
-    try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.3)
-            try:
-                runs = client.search_runs([client.get_experiment_by_name("ablation").experiment_id],
-                                          "tags.role = 'cell'")
-            except Exception:  # store not created yet
-                continue
-            if runs and int(runs[0].data.tags.get("checkpoint_iteration", 0)) >= 50:
-                run_id = runs[0].info.run_id
-                os.killpg(proc.pid, signal.SIGKILL)
-                break
-    finally:
-        if proc.poll() is None and run_id is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+    runs = kill_when(args, tmp_path, client, lambda runs: bool(runs) and
+                     int(runs[0].data.tags.get("checkpoint_iteration", 0)) >= 50)
+    run_id = runs[0].info.run_id if runs else None
     assert run_id is not None, "training finished or never checkpointed before the kill"
     killed = client.get_run(run_id)
     assert killed.info.status == "RUNNING"

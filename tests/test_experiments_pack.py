@@ -6,34 +6,16 @@ its reason while the other seed of the pack finishes."""
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
-
 import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
+from study_cli import cell_runs, cli, kill_when
 
-REPO = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.slow
 SMALL = ["--set", "eval.rollouts=2", "--set", "eval.figures=1"]
 
 
-def _env(store: Path) -> dict[str, str]:
-    return {**os.environ, "PYTHONPATH": str(REPO), "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
-
-
-def _cli(args: list[str], store: Path, timeout: int = 400) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "experiments", *args], cwd=store, env=_env(store),
-                          capture_output=True, text=True, timeout=timeout)
-
-
 def _cells(client: MlflowClient) -> dict[str, object]:
-    runs = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.role = 'cell'")
-    return {r.data.tags["seed"]: r for r in runs}
+    return {r.data.tags["seed"]: r for r in cell_runs(client)}
 
 
 def _artifacts(client: MlflowClient, run_id: str) -> set[str]:
@@ -44,12 +26,13 @@ def _claimless(params: dict[str, str]) -> dict[str, str]:
     return {k: v for k, v in params.items() if not k.startswith("claim.")}
 
 
+@pytest.mark.slow
 def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
     stores = {}
     for pack in ("1", "2"):
         store = tmp_path / f"pack{pack}"
         store.mkdir()
-        proc = _cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
+        proc = cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
                      "--pack", pack, *SMALL], store)
         assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
         assert ("in 1 job(s)" if pack == "2" else "in 2 job(s)") in proc.stderr
@@ -69,35 +52,24 @@ def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
         assert [m.step for m in stores["2"].get_metric_history(p.info.run_id, "val/metric")] == [5, 10]
 
 
+@pytest.mark.slow
 def test_killed_packed_job_resumes_every_seed_from_its_checkpoint(tmp_path):
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--pack", "2", "--workers", "1",
             "--study-name", "killed", "--set", "train.iters=1500", "--set", "train.checkpoint_every=50",
             "--set", "train.val_every=0", "--set", "eval.figures=0", "--set", "eval.rollouts=2"]
-    proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path, env=_env(tmp_path),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    killed, deadline = None, time.monotonic() + 300
-    try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.3)
-            try:
-                runs = _cells(client)
-            except Exception:  # store not created yet
-                continue
-            if len(runs) == 2 and all(int(r.data.tags.get("checkpoint_iteration", 0)) >= 50 for r in runs.values()):
-                os.killpg(proc.pid, signal.SIGKILL)
-                killed = runs
-                break
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+
+    def both_checkpointed(runs: list) -> bool:
+        return len(runs) == 2 and all(int(r.data.tags.get("checkpoint_iteration", 0)) >= 50 for r in runs)
+
+    runs = kill_when(args, tmp_path, client, both_checkpointed)
+    killed = None if runs is None else {r.data.tags["seed"]: r for r in runs}
     assert killed is not None, "training finished or never checkpointed both seeds before the kill"
     at = {seed: int(client.get_run(r.info.run_id).data.tags["checkpoint_iteration"]) for seed, r in killed.items()}
     assert all(client.get_run(r.info.run_id).info.status == "RUNNING" for r in killed.values())
     assert max(at.values()) < 1500
 
-    done = _cli(args, tmp_path)
+    done = cli(args, tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     for seed, r in killed.items():
         run = client.get_run(r.info.run_id)
@@ -109,6 +81,7 @@ def test_killed_packed_job_resumes_every_seed_from_its_checkpoint(tmp_path):
     assert sorted(_cells(client)) == ["0", "1"]  # the same two runs
 
 
+@pytest.mark.slow
 def test_a_diverging_seed_fails_while_the_other_finishes(tmp_path):
     import dataclasses
 
@@ -132,3 +105,44 @@ def test_a_diverging_seed_fails_while_the_other_finishes(tmp_path):
     assert ok.info.status == "FINISHED" and ok.data.metrics["train/iterations"] == 10
     assert bad.info.status == "FAILED" and "non-finite" in bad.data.tags["error"]
     assert "reacher/success_rate" not in bad.data.metrics
+
+
+@pytest.mark.slow
+def test_a_queue_worker_trains_a_cell_groups_seeds_as_one_entry(tmp_path):
+    import optuna
+    from optuna.trial import TrialState
+
+    args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--worker", "--workers", "1",
+            "--study-name", "q", "--set", "eval.rollouts=2", "--set", "eval.figures=0"]
+    proc = cli(args, tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    assert "2 cell(s) run, 0 skipped" in proc.stdout
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    runs = _cells(client)
+    assert sorted(runs) == ["0", "1"] and {r.info.status for r in runs.values()} == {"FINISHED"}
+    entries = optuna.load_study(study_name="ablation-cells:q", storage=f"sqlite:///{tmp_path / 'queue.db'}").trials
+    assert [t.state for t in entries] == [TrialState.COMPLETE]  # one entry: the pack
+    assert sorted(entries[0].user_attrs["config_hashes"]) == sorted(r.data.tags["config_hash"] for r in runs.values())
+    assert sorted(entries[0].user_attrs["mlflow_run_ids"]) == sorted(r.info.run_id for r in runs.values())
+    again = cli(args, tmp_path)
+    assert again.returncode == 0 and "0 cell(s) run, 2 skipped" in again.stdout
+
+
+def test_pack_is_a_typed_option_outside_every_hash():
+    from experiments.cells import build_cells
+    from experiments.cli import build_parser, load_config
+    from experiments.config import ConfigError, load_profile
+    from experiments.pack import pack_units
+
+    base = load_profile("smoke", seeds=3)
+    packed = load_config(build_parser().parse_args(["ablation", "--profile", "smoke", "--seeds", "3", "--pack", "2"]))
+    assert (base.pack, packed.pack) == (0, 2)
+    assert packed.study_hash() == base.study_hash() and packed.resolved_study_name() == base.resolved_study_name()
+    assert [c.config_hash for c in build_cells(packed)] == [c.config_hash for c in build_cells(base)]
+    with pytest.raises(ConfigError, match="pack"):
+        load_profile("smoke", pack=-1)
+    todo = [(c, str(i)) for i, c in enumerate(build_cells(packed))]  # 2 variants x 3 seeds
+    assert [[c.key for c, _ in u] for u in pack_units(todo, 2)] == [
+        ["reacher/lstm/seed0", "reacher/lstm/seed1"], ["reacher/lstm/seed2"],
+        ["reacher/ac-lstm-mdn/seed0", "reacher/ac-lstm-mdn/seed1"], ["reacher/ac-lstm-mdn/seed2"]]
+    assert [len(u) for u in pack_units(todo, 0)] == [3, 3] and [len(u) for u in pack_units(todo, 1)] == [1] * 6
