@@ -174,7 +174,7 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
         else:
             _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held)
         for cell, run_id in held:  # cells another command of this study trains: wait for them
-            got = claimed_cell(cell.to_dict(), uri, run_id, interactive, level, TORCH_THREADS, *claim, True)
+            got = claimed_cell(cell, uri, run_id, interactive, level, TORCH_THREADS, *claim, True)
             _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
     except KeyboardInterrupt:
         # interrupted cells are KILLED with their last checkpoint artifact: a re-run resumes them
@@ -220,8 +220,8 @@ def _record(outcome: StudyOutcome, cell: Cell, run_id: str, got: Claimed, bar, t
                  f": {res.error}" if res.error else "")
 
 
-def _unit_args(unit: list[tuple[Cell, str]]) -> tuple[list[dict], list[str]]:
-    return [cell.to_dict() for cell, _ in unit], [run_id for _, run_id in unit]
+def _unit_args(unit: list[tuple[Cell, str]]) -> tuple[list[Cell], list[str]]:
+    return [cell for cell, _ in unit], [run_id for _, run_id in unit]
 
 
 def _record_unit(outcome: StudyOutcome, unit: list[tuple[Cell, str]], got: list[Claimed], bar, total: int,

@@ -23,6 +23,7 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
+from experiments.cells import Cell
 from experiments.tracking import Client, log_metrics, set_tags
 
 log = logging.getLogger(__name__)
@@ -151,27 +152,23 @@ def acquire(client: Client, run_id: str, key: str, me: str, beat: float, grace: 
         time.sleep(beat)
 
 
-def cell_key(cell_dict: dict) -> str:
-    return f"{cell_dict['task']}/{cell_dict['variant']}/seed{cell_dict['seed']}"
-
-
-def claimed_cell(cell_dict: dict, uri: str, run_id: str, progress: bool, level: int, threads: int | None,
+def claimed_cell(cell: Cell, uri: str, run_id: str, progress: bool, level: int, threads: int | None,
                  beat: float, grace: float, wait: bool) -> Claimed:
     """Run the cell in its run if this process wins the claim (see the module docstring)."""
     from experiments.worker import run_cell
 
     logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
     client = Client(uri)
-    n = acquire(client, run_id, cell_key(cell_dict), holder_id(), beat, grace, wait)
+    n = acquire(client, run_id, cell.key, holder_id(), beat, grace, wait)
     if isinstance(n, Claimed):
         return n
     beater = Beat(client, run_id, n, beat)
     try:
-        res = run_cell(cell_dict, uri, run_id, progress, level, threads)
+        res = run_cell(cell, uri, run_id, progress, level, threads)
     finally:
         beater.release()
     if res.status == "FINISHED":
-        log_headline(client, run_id, cell_dict["task"], res.metrics)
+        log_headline(client, run_id, cell.task, res.metrics)
     return Claimed("ran", res)
 
 

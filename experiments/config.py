@@ -57,12 +57,17 @@ class TaskConfig:
     data: dict[str, Any]  # constructor options of the task's dataset (per_task.<task>.data; {} = defaults)
 
 
+def _all_or_tuple(value: Any, known) -> Any:
+    """`"all"` (or `["all"]`) selects every registered name, so a new task or variant joins such profiles."""
+    return tuple(known()) if value == "all" or list(as_tuple(value)) == ["all"] else as_tuple(value)
+
+
 @dataclass(frozen=True, config=STRICT)
 class StudyConfig:
     profile: str
-    tasks: Annotated[tuple[str, ...], BeforeValidator(as_tuple)]  # training tasks; each model is evaluated
-    # on every task whose model_task it is
-    variants: Annotated[tuple[str, ...], BeforeValidator(as_tuple)]
+    # training tasks; each model is evaluated on every task whose model_task it is ("all": every one)
+    tasks: Annotated[tuple[str, ...], BeforeValidator(lambda v: _all_or_tuple(v, training_tasks))]
+    variants: Annotated[tuple[str, ...], BeforeValidator(lambda v: _all_or_tuple(v, known_variants))]  # or "all"
     seeds: PositiveInt = 2  # seeds 0..seeds-1
     workers: NonNegativeInt = 0  # 0: one per CPU core
     pack: NonNegativeInt = 0  # seeds of a cell group trained together (experiments/pack.py); 0: all, 1: unpacked

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from experiments.cells import Cell
-from experiments.claims import Beat, Claimed, acquire, cell_key, claimed_cell, holder_id, log_headline
+from experiments.claims import Beat, Claimed, acquire, claimed_cell, holder_id, log_headline
 from experiments.tracking import Client
 from experiments.worker import (
     CellResult,
@@ -31,6 +31,7 @@ from experiments.worker import (
     run_cell,
     seed_everything,
     setup_process,
+    test_signal,
 )
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ def pack_units(todo: Sequence[tuple[Cell, str]], pack: int) -> list[list[tuple[C
     return [g[i: i + size] for g in groups.values() for i in range(0, len(g), size)]
 
 
-def run_unit(cells: list[dict[str, Any]], run_ids: list[str], uri: str, progress: bool, level: int,
+def run_unit(cells: list[Cell], run_ids: list[str], uri: str, progress: bool, level: int,
              threads: int | None, beat: float, grace: float, wait: bool) -> list[Claimed]:
     """Entry point for worker processes: one Claimed per cell, in order; a unit of one cell is
     claims.claimed_cell (today's path), more are a packed job over the cells this process claims."""
@@ -59,7 +60,7 @@ def run_unit(cells: list[dict[str, Any]], run_ids: list[str], uri: str, progress
         return [claimed_cell(cells[0], uri, run_ids[0], progress, level, threads, beat, grace, wait)]
     setup_process(level, threads)
     client, me = Client(uri), holder_id()
-    got: list[Claimed | int] = [acquire(client, run_id, cell_key(c), me, beat, grace, False)
+    got: list[Claimed | int] = [acquire(client, run_id, c.key, me, beat, grace, False)
                                 for c, run_id in zip(cells, run_ids, strict=True)]
     mine = [i for i, g in enumerate(got) if isinstance(g, int)]
     beats = [Beat(client, run_ids[i], got[i], beat) for i in mine]
@@ -73,7 +74,7 @@ def run_unit(cells: list[dict[str, Any]], run_ids: list[str], uri: str, progress
             b.release()
     for i, res in zip(mine, results, strict=True):
         if res.status == "FINISHED":
-            log_headline(client, res.run_id, cells[i]["task"], res.metrics)
+            log_headline(client, res.run_id, cells[i].task, res.metrics)
         got[i] = Claimed("ran", res)
     if wait:  # cells another process holds: wait for each (it trains alone if that process died)
         got = [claimed_cell(c, uri, run_id, progress, level, threads, beat, grace, True)
@@ -102,6 +103,14 @@ def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], l
                 except Exception as exc:
                     results[k] = run.failed(exc, start)
             live = [k for k in range(len(runs)) if k not in results]
+            marks: dict[int, int] = {}  # seed in the pack -> its last checkpoint's iteration
+
+            def checkpointed(live: list[int], j: int, path: Path, it: int) -> None:
+                runs[live[j]].on_checkpoint(path, it, signal=False)
+                marks[j] = it
+                if len(marks) == len(live) and min(marks.values()) >= it:  # the fault tests' hook: every seed's
+                    test_signal([(runs[k].run_id, it) for k in live])  # checkpoint of this iteration is stored
+
             try:
                 task, demos = load_task(cells[live[0]]) if live else (None, None)
                 seed_everything(cells[live[0]].seed if live else 0)
@@ -111,7 +120,7 @@ def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], l
                     cells[0].model, [cells[k].train for k in live], task, demos,
                     checkpoint_paths=[runs[k].ckpt_path for k in live],
                     on_metrics=lambda j, it, m: runs[live[j]].buffer.add(it, m),
-                    on_checkpoint=lambda j, path, it: runs[live[j]].on_checkpoint(path, it),
+                    on_checkpoint=lambda j, path, it: checkpointed(live, j, path, it),
                     on_validation=lambda j, it, v: runs[live[j]].on_validation(it, v)) if live else []
             except Exception as exc:  # the pack as a whole (its task, data or training): every seed fails
                 for k in live:

@@ -116,7 +116,7 @@ def _cell_objective(cfg: StudyConfig, cells: dict[str, Cell], client: Client, ur
         log.info("worker %s: %s (queue entry %d, run(s) %s)", worker_id(), ", ".join(c.key for c, _ in unit),
                  trial.number, ", ".join(run_ids))
         # the claims wait out a dead worker's claim on a run (on another host: up to the grace period)
-        got = run_unit([c.to_dict() for c, _ in unit], run_ids, uri, False, level, TORCH_THREADS,
+        got = run_unit([c for c, _ in unit], run_ids, uri, False, level, TORCH_THREADS,
                        cfg.sweep.heartbeat, cfg.sweep.grace_period, True)
         results = [g.result for g in got if g.kind != "done"]
         if not results:

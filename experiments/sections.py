@@ -92,19 +92,22 @@ class SweepConfig:
 
 def known_tasks() -> dict[str, str]:
     """Registered task name -> its model_task."""
-    from envs.tasks import TASKS  # importing the package registers the built-in tasks
+    from envs.tasks import model_task_of, task_names
 
-    return {name: (cls.model_task or name) for name, cls in sorted(TASKS.items())}
+    return {name: model_task_of(name) for name in sorted(task_names())}
 
 
 def training_tasks() -> list[str]:
-    return [name for name, model_task in known_tasks().items() if model_task == name]
+    from envs.tasks import training_tasks
+
+    return training_tasks()
 
 
 def evaluation_tasks(training_task: str) -> list[str]:
     """Every task evaluated with the model trained on `training_task` (itself first)."""
-    others = [n for n, m in known_tasks().items() if m == training_task and n != training_task]
-    return [training_task, *others]
+    from envs.tasks import evaluation_tasks
+
+    return evaluation_tasks(training_task)
 
 
 def known_variants() -> list[str]:

@@ -126,10 +126,11 @@ def get_or_create_experiment(client: Client, name: str) -> str:
 
 
 def find_parent_run(client: Client, experiment_id: str, study_name: str):
+    """The study's parent run: the earliest, the one concurrent commands settle on (settle_parent_run)."""
     runs = client.search_runs(
         [experiment_id],
         filter_string=f"tags.study_name = '{study_name}' and tags.role = 'parent'",
-        order_by=["attributes.start_time DESC"],
+        order_by=["attributes.start_time ASC", "attributes.run_id ASC"],
         max_results=1,
     )
     return runs[0] if runs else None
@@ -137,14 +138,22 @@ def find_parent_run(client: Client, experiment_id: str, study_name: str):
 
 def get_or_create_parent_run(client: Client, experiment_id: str, study_name: str, tags: Mapping[str, str]) -> str:
     """The study's parent run; re-running a study reuses it (and marks it RUNNING again)."""
-    run = find_parent_run(client, experiment_id, study_name)
+    from mlflow.exceptions import MlflowException
+
     all_tags = {"study_name": study_name, "role": "parent", **tags}
-    if run is None:
-        run = client.create_run(experiment_id, run_name=study_name, tags=all_tags)
+    for _ in range(3):
+        run = find_parent_run(client, experiment_id, study_name)
+        if run is None:
+            return client.create_run(experiment_id, run_name=study_name, tags=all_tags).info.run_id
+        try:
+            client.update_run(run.info.run_id, status="RUNNING")
+        except MlflowException as exc:  # a duplicate another command deleted just after we found it
+            if "deleted" not in str(exc):
+                raise
+            continue
+        client.log_batch(run.info.run_id, tags=[RunTag(k, str(v)) for k, v in all_tags.items()])
         return run.info.run_id
-    client.update_run(run.info.run_id, status="RUNNING")
-    client.log_batch(run.info.run_id, tags=[RunTag(k, str(v)) for k, v in all_tags.items()])
-    return run.info.run_id
+    raise RuntimeError(f"the parent run of study {study_name!r} kept being deleted by another command")
 
 
 def settle_parent_run(client: Client, experiment_id: str, study_name: str, parent_id: str) -> str:

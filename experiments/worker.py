@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import random
 import tempfile
 import time
@@ -35,6 +36,11 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "model.pt"
 CHECKPOINT_DIR = "checkpoint"
+# Test hooks (never set in normal use): once a checkpoint is in the store, append "<run_id> <iteration>"
+# to the file named by SIGNAL_FILE_ENV, and with HOLD_ENV=1 then wait there until killed or interrupted,
+# so a fault test kills or interrupts a cell at a known point instead of racing its training.
+SIGNAL_FILE_ENV = "ACRMDN_TEST_SIGNAL_FILE"
+HOLD_ENV = "ACRMDN_TEST_HOLD"
 
 
 @dataclass
@@ -123,6 +129,18 @@ def run_cell(cell: Cell | dict[str, Any], uri: str, run_id: str, progress: bool 
         return run.failed(exc, start)
 
 
+def test_signal(marks: list[tuple[str, int]]) -> None:
+    """The fault tests' hook (see SIGNAL_FILE_ENV) for checkpoints (run_id, iteration); a no-op
+    unless the variable is set. A pack signals its seeds' checkpoints of one iteration at once."""
+    path = os.environ.get(SIGNAL_FILE_ENV)
+    if not path:
+        return
+    with open(path, "a") as f:  # one short O_APPEND write: lines from parallel workers do not interleave
+        f.write("".join(f"{run_id} {iteration}\n" for run_id, iteration in marks))
+    while os.environ.get(HOLD_ENV) == "1":  # until SIGKILL, or Ctrl-C raising KeyboardInterrupt here
+        time.sleep(3600)
+
+
 def mark_killed(client: Client, run_ids: list[str]) -> None:
     """Interrupted cells: RUNNING runs become KILLED (a re-run resumes them from their checkpoint)."""
     for run_id in run_ids:
@@ -178,10 +196,14 @@ class CellRun:
         logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) if fetched is not None else -1
         self.buffer = MetricBuffer(client, run_id, skip_through=logged)
 
-    def on_checkpoint(self, path: Path, iteration: int) -> None:
+    def on_checkpoint(self, path: Path, iteration: int, signal: bool = True) -> None:
+        """The checkpoint into the store; then the fault tests' hook unless `signal` is False
+        (a pack signals its seeds together)."""
         self.buffer.flush()
         self.client.log_artifact(self.run_id, str(path), CHECKPOINT_DIR)
         set_tags(self.client, self.run_id, {"checkpoint_iteration": iteration})
+        if signal:
+            test_signal([(self.run_id, iteration)])
 
     def on_validation(self, iteration: int, value: float) -> bool:
         self.buffer.add(iteration, {"val/metric": value})
@@ -193,9 +215,11 @@ class CellRun:
         import numpy as np
 
         from experiments.evaluation import evaluate_model, rollout_arrays, rollout_figure
+        from experiments.model_logging import log_stm  # the trained STM as the run's MLflow model "model"
 
         cell, client, run_id, work = self.cell, self.client, self.run_id, self.work
         self.buffer.flush()
+        log_stm(result.model, client, run_id)
         log.info("cell %s: trained in %.0fs; evaluating on %s", cell.key, result.seconds, ", ".join(cell.eval_tasks))
         log_metrics(client, run_id, {"time/train_seconds": result.seconds, "train/iterations": result.iterations})
         train_cfg = cell.train

@@ -59,6 +59,30 @@ def mixture_mean(logit_alpha: torch.Tensor, mu: torch.Tensor) -> torch.Tensor:
     return (torch.softmax(logit_alpha, dim=-1).unsqueeze(-1) * mu).sum(-2)
 
 
+def sample_component(logit_alpha: torch.Tensor, *, temperature: float = 1.0,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+    """Index (...,) of one component per mixture, drawn from softmax(logits / temperature):
+    tau < 1 favours the likely components, tau > 1 flattens the weights."""
+    if temperature <= 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    probs = torch.softmax(logit_alpha.detach() / temperature, dim=-1)
+    flat = probs.reshape(-1, probs.shape[-1])
+    return torch.multinomial(flat, 1, generator=generator).reshape(probs.shape[:-1])
+
+
+def select(mu: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Mean (..., D) of component idx (...,) of each mixture; differentiable w.r.t. mu."""
+    idx = idx.reshape(*idx.shape, 1, 1).expand(*idx.shape, 1, mu.shape[-1])
+    return torch.gather(mu, -2, idx).squeeze(-2)
+
+
+def most_responsible(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor,
+                     point: torch.Tensor) -> torch.Tensor:
+    """Index (...,) of the component with the highest posterior responsibility for `point` (..., D):
+    argmax_i log alpha_i + log g_i(point)."""
+    return (F.log_softmax(logit_alpha, dim=-1) + component_log_prob(mu, log_sigma, point)).argmax(dim=-1)
+
+
 def sample(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor, *, temperature: float = 1.0,
            generator: torch.Generator | None = None) -> torch.Tensor:
     """Draw one point per mixture (..., D).
@@ -67,25 +91,27 @@ def sample(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor,
     sqrt(tau); tau -> 0 approaches the component mean. The draw is reparameterised
     (mu + sigma * eps), so gradients flow to mu and sigma of the chosen component.
     """
-    if temperature <= 0:
-        raise ValueError(f"temperature must be > 0, got {temperature}")
-    probs = torch.softmax(logit_alpha.detach() / temperature, dim=-1)
-    flat = probs.reshape(-1, probs.shape[-1])
-    idx = torch.multinomial(flat, 1, generator=generator).reshape(*probs.shape[:-1], 1)
-    dim = mu.shape[-1]
-    mu_k = torch.gather(mu, -2, idx.unsqueeze(-1).expand(*idx.shape, dim)).squeeze(-2)
-    sigma_k = torch.exp(torch.gather(log_sigma, -1, idx)) * math.sqrt(temperature)
+    idx = sample_component(logit_alpha, temperature=temperature, generator=generator)
+    mu_k = select(mu, idx)
+    sigma_k = torch.exp(torch.gather(log_sigma, -1, idx.unsqueeze(-1))) * math.sqrt(temperature)
     eps = torch.randn(mu_k.shape, generator=generator, dtype=mu.dtype, device=mu.device)
     return mu_k + sigma_k * eps
 
 
+POINT_MODES = ("sample", "sample_component", "component_mean", "mixture_mean")
+
+
 def point(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor, mode: str, *,
           temperature: float = 1.0, generator: torch.Generator | None = None) -> torch.Tensor:
-    """One point of the mixture chosen by `mode` (sample | component_mean | mixture_mean)."""
+    """One point of the mixture chosen by `mode`: sample (a draw), sample_component (the mean
+    of a component drawn with the temperature), component_mean (of the most likely
+    component) or mixture_mean."""
     if mode == "component_mean":
         return component_mean(logit_alpha, mu)
     if mode == "mixture_mean":
         return mixture_mean(logit_alpha, mu)
     if mode == "sample":
         return sample(logit_alpha, mu, log_sigma, temperature=temperature, generator=generator)
-    raise ValueError(f"unknown mixture point mode {mode!r}; known: sample, component_mean, mixture_mean")
+    if mode == "sample_component":
+        return select(mu, sample_component(logit_alpha, temperature=temperature, generator=generator))
+    raise ValueError(f"unknown mixture point mode {mode!r}; known: {', '.join(POINT_MODES)}")

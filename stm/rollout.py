@@ -8,6 +8,20 @@ psi is read per step from `episode.psi`, so a goal switch is a change of rows.
 A task that chains skills (stacking: three pick-and-places) lists the steps at which
 a new skill starts in `episode.info["restart_steps"]`: there the LSTM state is reset
 and the input is built as an episode start (dq = 0, gripper open) from the current q.
+
+What an MDN feeds back (`feedback`; a deterministic head ignores it):
+  component_mean     the mean of the most likely component, each step (the default)
+  mixture_mean       sum_i alpha_i mu_i, each step
+  sample             a draw of the mixture, each step (weights and sigmas tempered)
+  sample_component   the mean of a component drawn each step from the tempered weights
+  segment_component  the mean of ONE component drawn from the tempered weights at the first
+                     step of each segment (the episode start and each restart step), followed
+                     for the whole segment: a rollout that commits to one mode of
+                     multimodal demonstrations instead of switching or averaging between them
+  segment_track      drawn at the first step of each segment as segment_component, then at each
+                     step the component most responsible for the previous step's fed-back point:
+                     a head need not keep a mode in the same component slot over time, so
+                     following the mode by continuity instead of by slot
 """
 
 from __future__ import annotations
@@ -22,10 +36,13 @@ import torch
 from tqdm.auto import tqdm
 
 from envs.tasks.base import Episode, Task
+from stm import mdn
 from stm.fk import default_tip_kinematics
 from stm.model import STM, feedback_state, initial_state
 
 log = logging.getLogger(__name__)
+
+FEEDBACKS = ("component_mean", "mixture_mean", "sample", "sample_component", "segment_component", "segment_track")
 
 
 @dataclass
@@ -37,6 +54,7 @@ class Rollouts:
     grip: np.ndarray
     seconds: float
     horizons: np.ndarray
+    components: np.ndarray | None = None  # (B, H) MDN component fed back at each step (-1: none / a blend)
 
     def __len__(self) -> int:
         return len(self.horizons)
@@ -65,16 +83,38 @@ def _restart_mask(episodes: list[Episode], horizon: int) -> torch.Tensor:
     return mask
 
 
+def _feedback_point(model: STM, raw: torch.Tensor, feedback: str, chosen: torch.Tensor, temperature: float,
+                    gen: torch.Generator, prev: torch.Tensor | None = None,
+                    fresh: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(normalised next state (B, D), component index (B,) fed back, -1 where none or a blend).
+    segment_track: prev (B, D) is the previous step's point, fresh (B,) where a segment starts."""
+    none = torch.full(raw.shape[:1], -1, dtype=torch.long)
+    if not model.is_mdn or feedback in ("mixture_mean", "sample"):
+        return model.predict(raw, feedback, temperature=temperature, generator=gen), none
+    if feedback == "component_mean":  # model.predict's path, unchanged; the index only for the record
+        return model.predict(raw, feedback), raw[:, : model.config.mixtures].argmax(dim=-1)
+    logit_alpha, mu, log_sigma = model.mixture(raw)
+    if feedback == "sample_component":
+        chosen = mdn.sample_component(logit_alpha, temperature=temperature, generator=gen)
+    if feedback == "segment_track" and prev is not None:
+        chosen = torch.where(fresh, chosen, mdn.most_responsible(logit_alpha, mu, log_sigma, prev))
+    return mdn.select(mu, chosen), chosen
+
+
 @torch.no_grad()
 def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str = "component_mean", seed: int = 0,
              temperature: float = 1.0, phi_mode: str | None = None) -> Rollouts:
     """Unroll the model from each episode's q0 for its horizon.
 
-    feedback: what the MDN head feeds back (sample | component_mean | mixture_mean);
-    phi_mode: None = as the model was trained (model.phi_mode)."""
+    feedback: what the MDN head feeds back (FEEDBACKS, see the module docstring), drawn with
+    `temperature` where it samples; phi_mode: None = as the model was trained (model.phi_mode)."""
     phi_mode = phi_mode or model.phi_mode
     if not episodes:
         raise ValueError("generate needs at least one episode")
+    if feedback not in FEEDBACKS:
+        raise ValueError(f"unknown feedback {feedback!r}; known: {', '.join(FEEDBACKS)}")
+    if temperature <= 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
     if model.layout.dim != task.layout.dim:
         raise ValueError(f"model state size {model.layout.dim} does not match task {task.name!r} "
                          f"state size {task.layout.dim}")
@@ -90,10 +130,15 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     s = initial_state(task, kin, q, psi[:, 0])
     B = len(episodes)
     qs, grips = torch.empty(B, H + 1, 7), torch.zeros(B, H + 1)
+    comps = torch.full((B, H), -1, dtype=torch.long)
     qs[:, 0] = q
     hc = None
     grip_idx = task.layout.grip.start if task.layout.gripper else None
     restarts = _restart_mask(episodes, H)
+    restarts[:, 0] = True  # every episode starts a segment
+    commit = feedback in ("segment_component", "segment_track") and model.is_mdn
+    chosen = torch.zeros(B, dtype=torch.long)
+    z = None  # the previous step's fed-back point (normalised)
     for t in range(H):
         if t > 0 and restarts[:, t].any():
             rows = restarts[:, t]
@@ -103,7 +148,13 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
             for x in hc:
                 x[:, rows] = 0.0
         raw, hc = model(model.normalize(s).unsqueeze(1), hc)
-        pred = model.denormalize(model.predict(raw[:, 0], feedback, temperature=temperature, generator=gen))
+        if commit and restarts[:, t].any():  # draw the segment's component from its first step's weights
+            rows = restarts[:, t]
+            logit_alpha = model.mixture(raw[rows, 0])[0]
+            chosen[rows] = mdn.sample_component(logit_alpha, temperature=temperature, generator=gen)
+        z, comps[:, t] = _feedback_point(model, raw[:, 0], feedback, chosen, temperature, gen,
+                                         prev=z, fresh=restarts[:, t])
+        pred = model.denormalize(z)
         s, q = feedback_state(task, kin, pred, q, psi[:, t + 1], phi_mode)
         qs[:, t + 1] = q
         if grip_idx is not None:
@@ -114,7 +165,7 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     for i, h in enumerate(horizons):  # pad past each horizon with the last valid row
         q_np[i, h + 1:] = q_np[i, h]
         grip_np[i, h + 1:] = grip_np[i, h]
-    return Rollouts(q=q_np, grip=grip_np, seconds=seconds, horizons=horizons)
+    return Rollouts(q=q_np, grip=grip_np, seconds=seconds, horizons=horizons, components=comps.numpy())
 
 
 def evaluate(task: Task, rollouts: Rollouts, episodes: list[Episode], progress: bool = False) -> list[dict[str, float]]:

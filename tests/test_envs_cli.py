@@ -41,6 +41,7 @@ def test_unknown_task_for_render_writes_nothing(tmp_path, capsys):
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_describe_json(capsys, cache):
     assert main(["describe", "circle", "--json", "--cache-dir", str(cache)]) == 0
     d = json.loads(capsys.readouterr().out)
@@ -51,12 +52,14 @@ def test_describe_json(capsys, cache):
     assert d["rejections"] == {"ik": 0, "physics": 0}
 
 
+@pytest.mark.slow
 def test_describe_text(capsys, cache):
     assert main(["describe", "circle", "--cache-dir", str(cache)]) == 0  # cached by the test above, or made now
     out = capsys.readouterr().out
     assert "demonstrations: 10" in out and "expert success in physics: 100%" in out and "generation time" in out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["circle", "reacher-changing-goal"])
 def test_render_writes_png_and_pdf(task, cache, tmp_path, capsys):
     out = tmp_path / "figs" / f"{task}.png"

@@ -1,51 +1,35 @@
 """End to end on the smoke profile, into temporary MLflow/Optuna stores: a parallel ablation
-study with its runs, params, metrics and artifacts; a re-run that skips every cell; a cell
-killed with SIGKILL mid-training that resumes from its checkpoint artifact; a failing cell
-marked FAILED with its error; a 4-trial sweep with pruning that a re-run continues."""
+study with its runs, params, metrics and artifacts (the session's smoke store, see conftest.py);
+a re-run that skips every cell; a cell killed with SIGKILL at its first checkpoint that resumes
+from its checkpoint artifact; a failing cell marked FAILED with its error; a 4-trial sweep with
+pruning that a re-run continues."""
 
 from __future__ import annotations
 
 import os
+import queue
 import re
 import signal
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import cli_env, held_env, run_cli, wait_for_signals
 from mlflow.tracking import MlflowClient
-from study_cli import kill_when
+from oracles import drawn_colours, wilson
 
-REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
-
-
-def _env(store: Path) -> dict[str, str]:
-    return {**os.environ, "PYTHONPATH": str(REPO), "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
-
-
-def _cli(args: list[str], store: Path, timeout: int = 400) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "experiments", *args], cwd=store, env=_env(store),
-                          capture_output=True, text=True, timeout=timeout)
 
 
 def _children(client: MlflowClient, exp_id: str, parent_id: str):
     return client.search_runs([exp_id], f"tags.`mlflow.parentRunId` = '{parent_id}'")
 
 
-@pytest.fixture(scope="module")
-def smoke_study(tmp_path_factory):
-    store = tmp_path_factory.mktemp("ablation")
-    proc = _cli(["ablation", "--profile", "smoke", "--workers", "2"], store)
-    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
-    return store, proc
-
-
-def test_ablation_smoke_end_to_end(smoke_study):
-    store, proc = smoke_study
-    client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
+def test_ablation_smoke_end_to_end(smoke_store, tmp_path):
+    client = MlflowClient(smoke_store.uri)
     exp = client.get_experiment_by_name("ablation")
     parents = client.search_runs([exp.experiment_id], "tags.role = 'parent'")
     assert len(parents) == 1
@@ -64,65 +48,86 @@ def test_ablation_smoke_end_to_end(smoke_study):
         assert params["train.iters"] == "10" and params["model.hidden_size"] == "16"
         assert params["git_commit"] and params["version.torch"] and params["version.mlflow"]
         for task in ("reacher", "reacher-changing-goal"):
+            # the logged metrics are the statistics of the logged per-episode outcomes
+            local = client.download_artifacts(run.info.run_id, f"rollouts/{task}.npz", str(tmp_path))
+            with np.load(local) as z:
+                success, final = z["success"], z["final_distance"]
+                assert z["tip"].shape[0] == 4 and z["tip"].shape[2] == 3 and np.isfinite(z["goal"]).all()
+                if task == "reacher-changing-goal":
+                    assert (z["switch_step"] > 0).all() and np.isfinite(z["new_goal"]).all()
+                    assert not np.allclose(z["goal"], z["new_goal"])
+            assert success.shape == final.shape == (4,) and set(np.unique(success)) <= {0.0, 1.0}
+            assert np.array_equal(success == 1.0, final < 0.05)  # the 5 cm success radius
             assert metrics[f"{task}/n_rollouts"] == 4
-            assert 0.0 <= metrics[f"{task}/success_ci_low"] <= metrics[f"{task}/success_rate"] \
-                <= metrics[f"{task}/success_ci_high"] <= 1.0
-            assert metrics[f"{task}/final_distance_mean"] > 0.0
+            assert metrics[f"{task}/success_rate"] == pytest.approx(success.mean())
+            assert metrics[f"{task}/final_distance_mean"] == pytest.approx(final.mean())
+            low, high = wilson(int(success.sum()), 4)
+            assert metrics[f"{task}/success_ci_low"] == pytest.approx(low, abs=1e-9)
+            assert metrics[f"{task}/success_ci_high"] == pytest.approx(high, abs=1e-9)
         for key in ("time/train_seconds", "time/rollout_seconds", "time/generation_seconds_per_traj",
                     "time/physics_seconds"):
             assert metrics[key] > 0.0
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "train/loss")]
         assert steps == [5, 10]  # log_every = 5, logged in batches, no duplicates
         assert [m.step for m in client.get_metric_history(run.info.run_id, "val/metric")] == [5, 10]
+        assert metrics["train/iterations"] == 10
         artifacts = {f.path for d in ("checkpoint", "config", "figures", "rollouts")
                      for f in client.list_artifacts(run.info.run_id, d)}
         assert {"checkpoint/model.pt", "config/config.json", "figures/reacher_rollouts.png",
                 "figures/reacher-changing-goal_rollouts.png", "rollouts/reacher.npz",
                 "rollouts/reacher-changing-goal.npz", "rollouts/ik_timing.json"} <= artifacts
-        local = client.download_artifacts(run.info.run_id, "rollouts/reacher-changing-goal.npz", str(store))
-        with np.load(local) as z:
-            assert z["tip"].shape[0] == 4 and z["tip"].shape[2] == 3
-            assert (z["switch_step"] > 0).all() and np.isfinite(z["new_goal"]).all()
-            assert np.array_equal(z["success"] == 1.0, z["final_distance"] < 0.05)
+        png = Path(client.download_artifacts(run.info.run_id, "figures/reacher_rollouts.png", str(tmp_path)))
+        assert drawn_colours(png) > 10  # paths, markers, axes and text: not a blank canvas
     # the report's success table (experiments.stats.success_table): what n counts is in its columns
+    out = smoke_store.stdout
     assert re.search(r"\| task +\| variant +\| success +\| per seed +\| Wilson 95% +\| seed-aware 95% +\| rollouts +"
-                     r"\| seeds +\|", proc.stdout) and re.search(r"\| reacher-changing-goal +\| lstm +\|", proc.stdout)
-    assert f"#/experiments/{exp.experiment_id}/runs" in proc.stdout
+                     r"\| seeds +\|", out) and re.search(r"\| reacher-changing-goal +\| lstm +\|", out)
+    assert f"#/experiments/{exp.experiment_id}/runs" in out
+    assert "2 cell(s) run, 0 skipped" in out
 
 
-def test_rerun_skips_every_finished_cell(smoke_study):
-    store, _ = smoke_study
-    client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
-    before = {r.info.run_id for r in client.search_runs([client.get_experiment_by_name("ablation").experiment_id])}
-    proc = _cli(["ablation", "--profile", "smoke", "--workers", "2"], store)
+def test_rerun_skips_every_finished_cell(smoke_store):
+    client = MlflowClient(smoke_store.uri)
+    exp_id = client.get_experiment_by_name("ablation").experiment_id
+    before = {r.info.run_id: r.info.end_time for r in client.search_runs([exp_id])}
+    proc = run_cli(["ablation", "--profile", "smoke", "--workers", "2"], smoke_store.path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "0 cell(s) run, 2 skipped" in proc.stdout
-    after = {r.info.run_id for r in client.search_runs([client.get_experiment_by_name("ablation").experiment_id])}
-    assert after == before
+    after = {r.info.run_id: r.info.end_time for r in client.search_runs([exp_id]) if r.data.tags["role"] == "cell"}
+    assert after == {k: v for k, v in before.items() if k in after} and len(after) == 2  # no cell ran again
 
 
-def test_cell_killed_mid_training_resumes_from_its_checkpoint(tmp_path):
+def test_cell_killed_at_its_checkpoint_resumes_from_it(tmp_path):
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name", "killed",
-            "--set", "train.iters=1500", "--set", "train.checkpoint_every=50", "--set", "train.val_every=0",
-            "--set", "eval.figures=0", "--set", "eval.rollouts=2"]  # long enough to be caught mid-training
-    runs = kill_when(args, tmp_path, client, lambda runs: bool(runs) and
-                     int(runs[0].data.tags.get("checkpoint_iteration", 0)) >= 50)
-    run_id = runs[0].info.run_id if runs else None
-    assert run_id is not None, "training finished or never checkpointed before the kill"
+            "--set", "train.iters=100", "--set", "train.checkpoint_every=50", "--set", "train.val_every=0",
+            "--set", "eval.figures=0", "--set", "eval.rollouts=2"]
+    signals, log = tmp_path / "signals", tmp_path / "killed.log"
+    # the cell holds at its first checkpoint (experiments/worker.py's test hook) until the SIGKILL
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path,
+                                env=held_env(tmp_path, signals), stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:
+        (run_id, iteration), = wait_for_signals(signals, 1, proc, log=log)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert iteration == 50 and proc.returncode == -signal.SIGKILL
     killed = client.get_run(run_id)
-    assert killed.info.status == "RUNNING"
-    killed_at = int(killed.data.tags["checkpoint_iteration"])
-    assert killed_at < 1500
+    assert killed.info.status == "RUNNING"  # SIGKILL: nobody marked it
+    assert killed.data.tags["checkpoint_iteration"] == "50"
+    assert [m.step for m in client.get_metric_history(run_id, "train/loss")] == list(range(5, 51, 5))
 
-    done = _cli(args, tmp_path)
+    done = run_cli(args, tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     run = client.get_run(run_id)
     assert run.info.status == "FINISHED"
-    assert int(run.data.tags["resumed_from_iteration"]) >= killed_at
-    assert run.data.metrics["train/iterations"] == 1500
+    assert run.data.tags["resumed_from_iteration"] == "50"
+    assert run.data.metrics["train/iterations"] == 100
     steps = [m.step for m in client.get_metric_history(run_id, "train/loss")]
-    assert steps == sorted(set(steps)) and steps[-1] == 1500  # continued, nothing logged twice
+    assert steps == list(range(5, 101, 5))  # continued after 50, nothing logged twice
     cells = client.search_runs([run.info.experiment_id], "tags.role = 'cell'")
     assert [r.info.run_id for r in cells] == [run_id]
 
@@ -149,7 +154,7 @@ def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
 
     # validation every 2 iterations: 5 intermediate values per trial for the median pruner
     args = ["sweep", "--profile", "smoke", "--workers", "1", "--set", "train.val_every=2", "--study-name", "s4"]
-    proc = _cli([*args, "--trials", "4"], tmp_path)
+    proc = run_cli([*args, "--trials", "4"], tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     journal = tmp_path / "optuna.journal"
     assert journal.exists()
@@ -175,7 +180,7 @@ def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
     figures = {f.path for f in client.list_artifacts(parent.info.run_id, "figures")}
     assert "figures/optimization_history.png" in figures
 
-    again = _cli([*args, "--trials", "5"], tmp_path)
+    again = run_cli([*args, "--trials", "5"], tmp_path)
     assert again.returncode == 0, again.stderr[-3000:]
     study = optuna.load_study(study_name="s4", storage=storage)
     assert len(study.trials) == 5
@@ -187,7 +192,7 @@ def test_sweep_failure_rate_objective_is_one_minus_the_physics_success(tmp_path)
 
     args = ["sweep", "--profile", "smoke", "--workers", "1", "--trials", "1", "--study-name", "fr",
             "--set", "sweep.objective=failure_rate", "--set", "sweep.eval_rollouts=3"]
-    proc = _cli(args, tmp_path)
+    proc = run_cli(args, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     backend = optuna.storages.journal.JournalFileBackend(str(tmp_path / "optuna.journal"))
     trial = optuna.load_study(study_name="fr", storage=optuna.storages.JournalStorage(backend)).trials[0]
@@ -195,34 +200,48 @@ def test_sweep_failure_rate_objective_is_one_minus_the_physics_success(tmp_path)
     assert trial.value == pytest.approx(1.0 - run.data.metrics["reacher/success_rate"])
 
 
-def test_ui_serves_the_store_and_stops_cleanly(smoke_study):
+def _lines(stream) -> queue.Queue:
+    """A process's output lines, read by a thread: a test waits for one with a timeout."""
+    lines: queue.Queue = queue.Queue()
+
+    def pump():
+        for line in stream:
+            lines.put(line)
+        lines.put(None)  # end of output
+
+    threading.Thread(target=pump, daemon=True).start()
+    return lines
+
+
+def test_ui_serves_the_store_and_stops_cleanly(smoke_store):
     import socket
+    import time
     import urllib.request
 
-    store, _ = smoke_study
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    proc = subprocess.Popen([sys.executable, "-m", "experiments", "ui", "--port", str(port)], cwd=store,
-                            env=_env(store), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                            start_new_session=True)
+    proc = subprocess.Popen([sys.executable, "-m", "experiments", "ui", "--port", str(port)], cwd=smoke_store.path,
+                            env=cli_env(smoke_store.path), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            text=True, start_new_session=True)
     try:
-        first = [proc.stdout.readline() for _ in range(2)]
-        assert first[0].startswith("MLflow UI over sqlite:///")
-        assert f"ablation: http://127.0.0.1:{port}/#/experiments/" in first[1] and first[1].rstrip().endswith("/runs")
+        lines = _lines(proc.stdout)
+        first = [lines.get(timeout=120) for _ in range(2)]
+        assert first[0] and first[0].startswith("MLflow UI over sqlite:///"), first
+        assert first[1] and f"ablation: http://127.0.0.1:{port}/#/experiments/" in first[1] \
+            and first[1].rstrip().endswith("/runs"), first
         deadline, status = time.monotonic() + 120, None
-        while time.monotonic() < deadline and status != 200:
-            time.sleep(1)
+        while status != 200:  # the server takes a while to listen: bounded retries on refused connections
+            assert time.monotonic() < deadline and proc.poll() is None, "the UI never answered /health"
             try:
                 status = urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5).status
             except OSError:
-                pass
-        assert status == 200
+                time.sleep(0.5)
         url = f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?experiment_name=ablation"
         assert b'"ablation"' in urllib.request.urlopen(url, timeout=10).read()
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=60)
-    time.sleep(1)
+    # `ui` returns only once its server's process group is empty (experiments/ui.py): nothing to wait for
     leftovers = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
-    assert f"--port {port}" not in leftovers  # the server (started in its own group) is gone too
+    assert f"--port {port}" not in leftovers

@@ -6,16 +6,22 @@ its reason while the other seed of the pack finishes."""
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+
 import numpy as np
 import pytest
+from cli_helpers import held_env, run_cli, wait_for_signals
 from mlflow.tracking import MlflowClient
-from study_cli import cell_runs, cli, kill_when
 
 SMALL = ["--set", "eval.rollouts=2", "--set", "eval.figures=1"]
 
 
 def _cells(client: MlflowClient) -> dict[str, object]:
-    return {r.data.tags["seed"]: r for r in cell_runs(client)}
+    runs = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.role = 'cell'")
+    return {r.data.tags["seed"]: r for r in runs}
 
 
 def _artifacts(client: MlflowClient, run_id: str) -> set[str]:
@@ -32,11 +38,13 @@ def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
     for pack in ("1", "2"):
         store = tmp_path / f"pack{pack}"
         store.mkdir()
-        proc = cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
+        proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
                      "--pack", pack, *SMALL], store)
         assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
         assert ("in 1 job(s)" if pack == "2" else "in 2 job(s)") in proc.stderr
         stores[pack] = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
+    from experiments.model_logging import logged_model_id
+
     alone, packed = _cells(stores["1"]), _cells(stores["2"])
     assert sorted(alone) == sorted(packed) == ["0", "1"]
     for seed in alone:
@@ -46,6 +54,7 @@ def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
         assert p.data.tags["config_hash"] == a.data.tags["config_hash"]
         assert set(p.data.metrics) == set(a.data.metrics)
         assert _artifacts(stores["2"], p.info.run_id) == _artifacts(stores["1"], a.info.run_id)
+        assert logged_model_id(stores["2"], p.info.run_id) and logged_model_id(stores["1"], a.info.run_id)
         losses = [[m.value for m in c.get_metric_history(r.info.run_id, "train/loss")]
                   for c, r in ((stores["1"], a), (stores["2"], p))]
         np.testing.assert_allclose(losses[1], losses[0], rtol=1e-4)  # stm's packed equivalence (tests/test_stm_packed)
@@ -56,28 +65,35 @@ def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
 def test_killed_packed_job_resumes_every_seed_from_its_checkpoint(tmp_path):
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--pack", "2", "--workers", "1",
-            "--study-name", "killed", "--set", "train.iters=1500", "--set", "train.checkpoint_every=50",
+            "--study-name", "killed", "--set", "train.iters=100", "--set", "train.checkpoint_every=50",
             "--set", "train.val_every=0", "--set", "eval.figures=0", "--set", "eval.rollouts=2"]
+    signals, log = tmp_path / "signals", tmp_path / "killed.log"
+    # the pack holds once both seeds' first checkpoints are in the store (experiments/worker.py's test hook)
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path,
+                                env=held_env(tmp_path, signals), stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:
+        marks = wait_for_signals(signals, 2, proc, log=log)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert sorted(it for _, it in marks) == [50, 50] and proc.returncode == -signal.SIGKILL
+    killed = _cells(client)
+    assert sorted(r.info.run_id for r in killed.values()) == sorted(run_id for run_id, _ in marks)
+    for r in killed.values():
+        assert r.info.status == "RUNNING" and r.data.tags["checkpoint_iteration"] == "50"
+        assert [m.step for m in client.get_metric_history(r.info.run_id, "train/loss")] == list(range(5, 51, 5))
 
-    def both_checkpointed(runs: list) -> bool:
-        return len(runs) == 2 and all(int(r.data.tags.get("checkpoint_iteration", 0)) >= 50 for r in runs)
-
-    runs = kill_when(args, tmp_path, client, both_checkpointed)
-    killed = None if runs is None else {r.data.tags["seed"]: r for r in runs}
-    assert killed is not None, "training finished or never checkpointed both seeds before the kill"
-    at = {seed: int(client.get_run(r.info.run_id).data.tags["checkpoint_iteration"]) for seed, r in killed.items()}
-    assert all(client.get_run(r.info.run_id).info.status == "RUNNING" for r in killed.values())
-    assert max(at.values()) < 1500
-
-    done = cli(args, tmp_path)
+    done = run_cli(args, tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
-    for seed, r in killed.items():
+    for r in killed.values():
         run = client.get_run(r.info.run_id)
         assert run.info.status == "FINISHED"
-        assert int(run.data.tags["resumed_from_iteration"]) >= at[seed]
-        assert run.data.metrics["train/iterations"] == 1500
+        assert run.data.tags["resumed_from_iteration"] == "50" and run.data.metrics["train/iterations"] == 100
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "train/loss")]
-        assert steps == sorted(set(steps)) and steps[-1] == 1500  # continued, nothing logged twice
+        assert steps == list(range(5, 101, 5))  # continued, nothing logged twice
     assert sorted(_cells(client)) == ["0", "1"]  # the same two runs
 
 
@@ -114,7 +130,7 @@ def test_a_queue_worker_trains_a_cell_groups_seeds_as_one_entry(tmp_path):
 
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--worker", "--workers", "1",
             "--study-name", "q", "--set", "eval.rollouts=2", "--set", "eval.figures=0"]
-    proc = cli(args, tmp_path)
+    proc = run_cli(args, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     assert "2 cell(s) run, 0 skipped" in proc.stdout
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
@@ -124,7 +140,7 @@ def test_a_queue_worker_trains_a_cell_groups_seeds_as_one_entry(tmp_path):
     assert [t.state for t in entries] == [TrialState.COMPLETE]  # one entry: the pack
     assert sorted(entries[0].user_attrs["config_hashes"]) == sorted(r.data.tags["config_hash"] for r in runs.values())
     assert sorted(entries[0].user_attrs["mlflow_run_ids"]) == sorted(r.info.run_id for r in runs.values())
-    again = cli(args, tmp_path)
+    again = run_cli(args, tmp_path)
     assert again.returncode == 0 and "0 cell(s) run, 2 skipped" in again.stdout
 
 

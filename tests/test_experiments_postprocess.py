@@ -14,6 +14,8 @@ from mlflow.tracking import MlflowClient
 from experiments.cli import main
 from experiments.postprocess import load_config
 
+pytestmark = pytest.mark.slow  # every test runs a study or the CLI
+
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):

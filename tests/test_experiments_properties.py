@@ -98,6 +98,7 @@ def _assert_rejected(argv: list[str], field: str, cwd: Path) -> None:
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(bad=st.one_of(too_small, not_an_int, not_a_choice, unknown_field),
        command=st.sampled_from(["ablation", "sweep"]))
+@pytest.mark.slow
 def test_rejected_set_values_exit_2_with_one_line_naming_the_field(store_dir, monkeypatch, bad, command):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     override, field = bad
@@ -118,6 +119,7 @@ cli_bad = st.one_of(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(bad=cli_bad)
 def test_rejected_cli_arguments_exit_2_with_one_line_naming_the_field(store_dir, monkeypatch, bad):
@@ -147,6 +149,7 @@ def mlflow_run(tmp_path_factory):
     return client, get_or_create_experiment(client, "ablation")
 
 
+@pytest.mark.slow
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(item=accepted)
 def test_accepted_values_round_trip_through_the_logged_params(mlflow_run, item):

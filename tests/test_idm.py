@@ -129,7 +129,8 @@ def test_short_idm_rollout_in_pybullet_stays_stable():
         tr = track_plan(w, FastIDM(model), plan, step_seconds=0.1)
     assert tr.q.shape == (51, 7) and tr.tau.shape == (50, 7)
     assert np.isfinite(tr.q).all()
-    assert np.abs(tr.q - tr.q_desired).max() < 0.3  # follows the plan roughly, no runaway
+    standing_still = np.abs(tr.q_desired - plan[0]).max()  # the error of an arm that never moves: 0.2 rad
+    assert np.abs(tr.q - tr.q_desired).max() < 0.25 * standing_still  # tracks the plan (measured 0.016 rad)
     ctrl = IDMController(FastIDM(model))
     ctrl.reset(np.r_[NEUTRAL_Q, np.zeros(7)])
     assert len(ctrl.states) == 2 and len(ctrl.actions) == 2
@@ -140,9 +141,14 @@ def test_idm_study_smoke_end_to_end(tmp_path):
     from stm.idm_study import idm_study
 
     res = idm_study(load_config("idm", "smoke", []).study, cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
-    for cond in ("position", "sim", "real_sim_idm", "real_finetuned"):
-        assert 0 <= res[f"{cond}/tip_rmse_vs_plan_m"] < 1.0
-        assert res[f"{cond}/success_rate"] in (0.0, 0.25, 0.5, 0.75, 1.0)
+    assert res["position/tip_rmse_vs_plan_m"] < 0.02 and res["position/final_error_m"] < 0.005
+    for cond in ("sim", "real_sim_idm", "real_finetuned"):  # a 3-epoch IDM: no quality claim, consistency only
+        rmse, via, ref = res[f"{cond}/tip_rmse_vs_plan_m"], res[f"{cond}/tip_rmse_vs_position_m"], \
+            res["position/tip_rmse_vs_plan_m"]
+        assert abs(rmse - via) <= ref + 1e-9  # triangle inequality: both measured at the plan's steps
+        rate, final = res[f"{cond}/success_rate"], res[f"{cond}/final_error_m"]
+        assert rate in (0.0, 0.25, 0.5, 0.75, 1.0)  # 4 plans
+        assert (rate == 1.0 and final < 0.05) or (rate == 0.0 and final >= 0.05) or 0.0 < rate < 1.0
     assert res["position/success_rate"] == 1.0  # the expert's plans reach their goals
     assert res["latency_fast_ms"] > 0 and res["data_samples"] == 4 * 198
     assert all((tmp_path / "out" / n).exists() for n in ("idm_tracking.png", "idm_tracking.pdf", "idm_sim.pt"))

@@ -10,9 +10,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from cli_helpers import cli_env as _env
+from cli_helpers import run_cli as _cli
 from mlflow import MlflowClient
 from PIL import Image
-from test_experiments_e2e import _cli, _env  # the e2e tests' way of running the experiments CLI on a tmp store
 
 from reports import paper
 from reports.results import MAX_FIGURE_WIDTH, ResultsError, parse_template, portable_uri, regeneration_command

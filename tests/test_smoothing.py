@@ -3,6 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from envs.robot import NEUTRAL_Q
 from stm.plans import FOUR_GOALS, jittery_skeletons, straight_line_plans
@@ -77,7 +78,14 @@ def test_smoothing_study_writes_figure_and_metrics(tmp_path):
     assert res["gd_vs_exact_max_abs_rad"] < 1e-6
     assert res["gd_goal/goal_error_m"] < res["skeleton/goal_error_m"]
     assert res["exact/mean_sq_jerk"] < res["skeleton/mean_sq_jerk"]
-    assert all(Path(p).exists() for p in res["figures"])
+    assert res["figures"] == [str(tmp_path / "smoothing_tip_paths.png"), str(tmp_path / "smoothing_tip_paths.pdf")]
+    assert Path(res["figures"][1]).read_bytes().startswith(b"%PDF")
+    with Image.open(res["figures"][0]) as im:
+        pixels = np.asarray(im.convert("RGB")).reshape(-1, 3).astype(int)
+    # every variant's line and the goals are drawn: pixels of each one's colour
+    for name, rgb in {"exact C0": (31, 119, 180), "gd C1": (255, 127, 14), "gd_goal C2": (44, 160, 44),
+                      "goal": (255, 0, 0)}.items():
+        assert (np.abs(pixels - rgb).max(axis=1) <= 12).sum() >= 20, f"{name} not drawn"
 
 
 def test_stm_plans_start_at_q_start():

@@ -77,3 +77,34 @@ def test_sample_is_reparameterised():
     log_sigma = torch.zeros(4, 1, requires_grad=True)
     mdn.sample(torch.zeros(4, 1), mu, log_sigma, generator=torch.Generator().manual_seed(1)).sum().backward()
     assert torch.all(mu.grad == 1.0) and log_sigma.grad.abs().sum() > 0
+
+
+def test_sample_component_frequencies_follow_the_tempered_weights():
+    g = torch.Generator().manual_seed(3)
+    n = 20000
+    logits = torch.log(torch.tensor([0.2, 0.8])).expand(n, 2)
+    for tau in (1.0, 0.5, 3.0):
+        idx = mdn.sample_component(logits, temperature=tau, generator=g)
+        assert idx.shape == (n,) and idx.dtype == torch.long
+        expected = torch.softmax(logits[0] / tau, -1)[1]  # tau 0.5: 0.94, tau 3: 0.61
+        assert abs(idx.float().mean() - expected) < 0.015
+    with pytest.raises(ValueError, match="temperature"):
+        mdn.sample_component(logits, temperature=0.0)
+
+
+def test_select_and_sample_component_point_return_a_component_mean():
+    mu = torch.tensor([[[0.0, 0.0], [1.0, 2.0], [-1.0, 4.0]], [[5.0, 5.0], [6.0, 6.0], [7.0, 7.0]]])
+    torch.testing.assert_close(mdn.select(mu, torch.tensor([2, 0])), torch.tensor([[-1.0, 4.0], [5.0, 5.0]]))
+    logits = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    x = mdn.point(logits, mu, torch.zeros(2, 3), "sample_component", generator=torch.Generator().manual_seed(0))
+    assert all(any(torch.equal(x[b], mu[b, k]) for k in range(3)) for b in range(2))  # a mean, no noise added
+
+
+def test_most_responsible_weighs_distance_sigma_and_weight():
+    mu = torch.tensor([[[0.0, 0.0], [1.0, 0.0]]]).expand(3, 2, 2)
+    logits = torch.log(torch.tensor([[0.5, 0.5], [0.5, 0.5], [0.999, 0.001]]))
+    log_sigma = torch.log(torch.tensor([[0.1, 0.1], [1.0, 0.1], [0.3, 0.3]]))
+    x = torch.tensor([[0.8, 0.0], [0.6, 0.0], [0.6, 0.0]])
+    # the nearest; a wide component can explain a point better than a narrow nearer one; a heavy weight
+    # can outvote distance
+    assert mdn.most_responsible(logits, mu, log_sigma, x).tolist() == [1, 0, 0]

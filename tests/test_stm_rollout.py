@@ -74,8 +74,17 @@ def test_sampling_is_seeded_and_evaluate_runs_physics(overfit):
     a = generate(model, task, eps, feedback="sample", seed=1)
     b = generate(model, task, eps, feedback="sample", seed=1)
     assert np.array_equal(a.q, b.q)
-    results = evaluate(task, a, eps)
-    assert len(results) == 2 and all(r["success"] in (0.0, 1.0) and r["final_distance"] >= 0 for r in results)
+    # physics against the kinematics: the overfit model reaches its demo's goal, not another episode's
+    demo, other = demo_episodes(demos, 1)[0], eps[0]
+    other = Episode(q0=demo.q0, psi=other.psi[: demo.horizon + 1], horizon=demo.horizon)
+    both = [demo, other]
+    ro = generate(model, task, both)
+    results = evaluate(task, ro, both)
+    fk_distance = [np.linalg.norm(tip_position_np(ro.q[i, -1]) - ep.psi[-1]) for i, ep in enumerate(both)]
+    assert fk_distance[0] < 0.02 < 0.1 < fk_distance[1], fk_distance
+    assert [r["success"] for r in results] == [1.0, 0.0]
+    for r, d in zip(results, fk_distance, strict=True):
+        assert r["final_distance"] == pytest.approx(d, abs=0.02), (r, d)  # position control tracks the plan
     with pytest.raises(ValueError, match="rollouts for"):
         evaluate(task, a, eps[:1])
 
@@ -84,3 +93,70 @@ def test_rollout_rejects_a_task_of_another_state_size(overfit):
     _, _, model = overfit
     with pytest.raises(ValueError, match="state size"):
         generate(model, ToyReach(gripper=False), ToyReach(gripper=False).episodes(1, 0))
+
+
+def _two_mode_model(task, step=0.02):
+    """An MDN whose mixture ignores its input: two equally likely components that move joint 0 by
+    +step or -step per step (normalisation is the identity)."""
+    import torch
+
+    from stm.model import STM
+
+    model = STM(ModelConfig(hidden_size=4, num_layers=1, mixtures=2), task.layout)
+    D = task.layout.dim
+    with torch.no_grad():
+        model.head.weight.zero_()
+        bias = torch.zeros_like(model.head.bias)
+        bias[4 + 0] = step  # mu_0, dq0
+        bias[4 + D] = -step  # mu_1, dq0
+        model.head.bias.copy_(bias)
+    return model
+
+
+def test_segment_component_commits_to_one_component_per_segment():
+    task = ToyReach(max_steps=10)
+    model = _two_mode_model(task)
+    eps = task.episodes(24, seed=0)
+    ro = generate(model, task, eps, feedback="segment_component", seed=5)
+    drift = ro.q[:, -1, 0] - ro.q[:, 0, 0]
+    assert np.allclose(np.abs(drift), 0.02 * ro.horizons, atol=1e-4)  # every step in one direction
+    assert np.all(ro.components == ro.components[:, :1])  # one component for the whole episode
+    assert 6 <= (drift > 0).sum() <= 18  # both components drawn (50/50 weights)
+    again = generate(model, task, eps, feedback="segment_component", seed=5)
+    assert np.array_equal(ro.q, again.q)  # seeded
+    per_step = generate(model, task, eps, feedback="sample_component", seed=5)
+    switched = (per_step.components != per_step.components[:, :1]).any(axis=1)
+    assert switched.mean() > 0.9  # drawn anew each step, it changes mode within an episode
+    top = generate(model, task, eps)  # the default: the most likely (tie: the first) component
+    assert np.all(top.components == 0) and np.allclose(top.q[:, -1, 0] - top.q[:, 0, 0], 0.02 * top.horizons)
+
+
+def test_segment_component_draws_again_at_a_restart_step():
+    task = ToyReach(max_steps=12)
+    model = _two_mode_model(task)
+    base = task.episodes(40, seed=1)
+    eps = [Episode(q0=ep.q0, psi=ep.psi, horizon=12, info={"restart_steps": [6]}) for ep in base]
+    ro = generate(model, task, eps, feedback="segment_component", seed=2)
+    c = ro.components
+    assert np.all(c[:, :6] == c[:, :1]) and np.all(c[:, 6:] == c[:, 6:7])  # constant within each segment
+    assert (c[:, 0] != c[:, 6]).any() and (c[:, 0] == c[:, 6]).any()  # the second draw is a new one
+
+
+def test_unknown_feedback_and_bad_temperature_are_errors(overfit):
+    task, demos, model = overfit
+    eps = demo_episodes(demos, 1)
+    with pytest.raises(ValueError, match="unknown feedback 'median'"):
+        generate(model, task, eps, feedback="median")
+    with pytest.raises(ValueError, match="temperature"):
+        generate(model, task, eps, feedback="segment_component", temperature=0.0)
+
+
+def test_segment_track_keeps_the_drawn_mode_by_continuity():
+    task = ToyReach(max_steps=10)
+    model = _two_mode_model(task)
+    eps = task.episodes(24, seed=0)
+    committed = generate(model, task, eps, feedback="segment_component", seed=5)
+    tracked = generate(model, task, eps, feedback="segment_track", seed=5)
+    # the components' means never move, so the most responsible component is the one drawn at the start
+    assert np.array_equal(tracked.components, committed.components)
+    assert np.array_equal(tracked.q, committed.q)

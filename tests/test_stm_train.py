@@ -169,13 +169,23 @@ def test_bad_checkpoints_give_clear_errors(toy, tmp_path):
     assert bad.read_bytes() == b"not a checkpoint at all"
 
 
-def test_batch_loss_is_finite_for_every_feedback_mode(toy):
+def test_batch_loss_feeds_back_each_mode_on_the_scheduled_steps_only(toy):
     task, demos = toy
     model, data = _model(task, demos)
     batch = data.batch(torch.arange(3))
-    g = torch.Generator().manual_seed(0)
-    for feedback in ("sample", "component_mean", "mixture_mean"):
-        assert torch.isfinite(batch_loss(model, batch, task, TrainConfig(u=2, v=2, feedback=feedback), KIN, g))
+
+    def loss(feedback: str, u: int, v: int, seed: int = 0) -> float:
+        cfg = TrainConfig(u=u, v=v, feedback=feedback)
+        value = batch_loss(model, batch, task, cfg, KIN, torch.Generator().manual_seed(seed))
+        assert torch.isfinite(value)
+        return value.item()
+
+    modes = ("sample", "component_mean", "mixture_mean")
+    teacher = {loss(f, u=4, v=0) for f in modes}
+    assert len(teacher) == 1  # no step is fed back: the feedback mode cannot matter
+    fed = [loss(f, u=2, v=2) for f in modes]
+    assert len(set(fed)) == 3 and teacher.isdisjoint(fed)  # each mode feeds back its own states
+    assert loss("sample", 2, 2, seed=0) == fed[0] != loss("sample", 2, 2, seed=1)  # sampling follows the generator
 
 
 def test_phi_mode_travels_with_the_checkpoint(toy, tmp_path):

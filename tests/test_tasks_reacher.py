@@ -48,8 +48,15 @@ def test_starts_are_tool_down_near_neutral_and_in_the_start_box(demos):
     axis = kin.forward(torch.as_tensor(q0)).tip_rot[..., :, 2].numpy()
     assert np.allclose(axis, [0, 0, -1], atol=2e-3)
     assert all(_in(START_BOX, t) for t in tip_position_np(q0))
-    # the IK projection moves the wrist, but the start stays in a neighbourhood of NEUTRAL_Q
-    assert np.abs(q0 - NEUTRAL_Q).max() < START_JOINT_RANGE + 1.2
+    # the IK projection keeps q_raw's tip, so the start tip lies where a perturbation of at most
+    # START_JOINT_RANGE per joint can put it: within r * sum_j |d tip / d q_j| of the neutral tip
+    # (first order; +5% for the curvature at 0.1 rad)
+    tip_n = tip_position_np(NEUTRAL_Q[None])[0]
+    jac = np.stack([(tip_position_np((NEUTRAL_Q + 1e-6 * np.eye(7)[j])[None])[0] - tip_n) / 1e-6 for j in range(7)])
+    reach = START_JOINT_RANGE * np.linalg.norm(jac, axis=1).sum()
+    assert np.linalg.norm(tip_position_np(q0) - tip_n, axis=1).max() < 1.05 * reach
+    # turning the tool down moves the joints a few tenths of a radian (at most 0.32 over 600 sampled starts)
+    assert np.abs(q0 - NEUTRAL_Q).max() < START_JOINT_RANGE + 0.4
     assert LIMITS.contains(demos.q).all()
 
 

@@ -1,0 +1,59 @@
+"""Running the project's command lines from tests, and the fault tests' synchronisation:
+plain functions (not fixtures) so that any test module can import them.
+
+A fault test sets ACRMDN_TEST_SIGNAL_FILE (and ACRMDN_TEST_HOLD=1) for the study it runs
+(see experiments/worker.py): every worker appends "<run_id> <iteration>" to that file once a
+checkpoint of its cell is in the store, then holds there, so the test kills or interrupts the
+study at a known point, never racing the training."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SIGNAL_FILE_ENV = "ACRMDN_TEST_SIGNAL_FILE"
+HOLD_ENV = "ACRMDN_TEST_HOLD"
+
+
+def cli_env(store: Path, **extra: str) -> dict[str, str]:
+    """The environment of a command line run on the store in `store` (its mlflow.db)."""
+    return {**os.environ, "PYTHONPATH": str(REPO), "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}",
+            **extra}
+
+
+def run_cli(args: list[str], store: Path, timeout: int = 400, module: str = "experiments",
+            **extra_env: str) -> subprocess.CompletedProcess:
+    """`python -m <module> ARGS` in `store`, output captured."""
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=store, env=cli_env(store, **extra_env),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def held_env(store: Path, signal_file: Path) -> dict[str, str]:
+    """cli_env with the fault hook on: each cell signals its first checkpoint and holds there."""
+    return cli_env(store, **{SIGNAL_FILE_ENV: str(signal_file), HOLD_ENV: "1"})
+
+
+def wait_for_signals(signal_file: Path, n: int, proc: subprocess.Popen, timeout: float = 300,
+                     log: Path | None = None) -> list[tuple[str, int]]:
+    """Block until `n` distinct runs have signalled a checkpoint; returns their (run_id, iteration).
+    Fails at once if the process exits first (it would never signal), and after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        lines = signal_file.read_text().split("\n") if signal_file.exists() else []
+        seen: dict[str, int] = {}
+        for line in lines:
+            if line.count(" ") == 1:  # complete lines only
+                run_id, iteration = line.split(" ")
+                seen.setdefault(run_id, int(iteration))
+        if len(seen) >= n:
+            return list(seen.items())
+        tail = log.read_text()[-3000:] if log is not None and log.exists() else ""
+        if proc.poll() is not None:
+            raise AssertionError(f"the study exited ({proc.returncode}) before {n} cell(s) signalled: {tail}")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no checkpoint signal from {n} cell(s) within {timeout} s: {tail}")
+        time.sleep(0.05)  # waiting on the file, not as synchronisation: the cells hold once they signal

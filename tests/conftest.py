@@ -1,0 +1,129 @@
+"""Isolation for every test, and the stores that several test modules share.
+
+- The session gets its own home directory (HOME, XDG dirs, matplotlib's config): no test reads
+  or writes the user's home, and nothing there (a dataset cache, an MLflow store) leaks in.
+- Every test runs in its own working directory (so the default stores, mlflow.db, optuna.journal,
+  queue.db and reports/out land there) with its own dataset cache (ACRMDN_CACHE) and a clean
+  environment for the subprocesses it starts: no MLFLOW_*/OPTUNA_*/ACRMDN_* from the caller,
+  PYTHONPATH = this checkout.
+- A test's dataset cache starts as a copy of the session's pool of valid entries, and entries it
+  generates (validated) go back to the pool: each demonstration set is generated about once per
+  session (reacher's takes ~10 CPU-s), while no test sees another test's writes or damage.
+- `smoke_store`: one smoke ablation (`python -m experiments ablation --profile smoke`) built once
+  per session through the CLI, for the tests that read a real study's store.
+- Hypothesis: a derandomized profile without a database when CI is set.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SCRUBBED_PREFIXES = ("MLFLOW_", "OPTUNA_", "ACRMDN_")
+
+try:  # hypothesis: reproducible in CI (same examples every run, no example database)
+    from hypothesis import settings
+
+    settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
+    settings.register_profile("dev", print_blob=True)
+    settings.load_profile("ci" if os.environ.get("CI") else os.environ.get("HYPOTHESIS_PROFILE", "dev"))
+except ImportError:  # hypothesis is a dev extra; its tests skip themselves without it
+    pass
+
+_SESSION: dict[str, Path] = {}
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A throwaway home and dataset pool for the whole session, set before any test module (or
+    matplotlib) is imported, so session- and module-scoped fixtures are isolated too."""
+    root = Path(tempfile.mkdtemp(prefix="acrmdn-tests-"))
+    home, pool = root / "home", root / "dataset-pool"
+    for d in (home / ".cache", home / ".config" / "matplotlib", pool):
+        d.mkdir(parents=True)
+    _SESSION.update(root=root, home=home, pool=pool)
+    for key in [k for k in os.environ if k.startswith(SCRUBBED_PREFIXES)]:
+        del os.environ[key]
+    os.environ.update({"HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
+                       "XDG_CONFIG_HOME": str(home / ".config"), "MPLCONFIGDIR": str(home / ".config" / "matplotlib"),
+                       "ACRMDN_CACHE": str(pool), "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg"})
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if "root" in _SESSION:
+        shutil.rmtree(_SESSION["root"], ignore_errors=True)
+
+
+def _entries(cache: Path) -> dict[str, tuple[Path, Path]]:
+    """Complete cache entries (npz + json) by stem."""
+    return {j.stem: (j.with_suffix(".npz"), j) for j in cache.glob("*.json") if j.with_suffix(".npz").exists()}
+
+
+def _valid(npz: Path, meta_path: Path) -> bool:
+    """The entry's arrays match their recorded hash and its config its recorded config hash."""
+    from envs.datasets import ARRAYS, arrays_hash, config_hash
+
+    try:
+        meta = json.loads(meta_path.read_text())
+        with np.load(npz, allow_pickle=False) as f:
+            arrays = {name: f[name] for name in ARRAYS}
+        return arrays_hash(arrays) == meta["arrays_sha256"] and config_hash(meta["config"]) == meta["config_hash"]
+    except Exception:  # any damage (a test may corrupt its copy on purpose): not for the pool
+        return False
+
+
+@pytest.fixture(autouse=True)
+def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch):
+    """Own working directory, dataset cache and store; clean environment for subprocesses.
+    Beside the test's tmp_path, not in it: a test may check that nothing was written there."""
+    pool = _SESSION["pool"]
+    root = tmp_path_factory.mktemp("isolated")
+    cache, work = root / "acrmdn-cache", root / "work"
+    cache.mkdir()
+    work.mkdir()
+    for npz, meta in _entries(pool).values():
+        shutil.copy2(npz, cache)
+        shutil.copy2(meta, cache)
+    for key in [k for k in os.environ if k.startswith(SCRUBBED_PREFIXES)]:
+        monkeypatch.delenv(key)
+    monkeypatch.setenv("ACRMDN_CACHE", str(cache))
+    monkeypatch.setenv("PYTHONPATH", str(REPO))
+    monkeypatch.chdir(work)  # the default stores (sqlite:///mlflow.db, optuna.journal) are the test's own
+    yield work
+    known = _entries(pool)
+    for stem, (npz, meta) in _entries(cache).items():
+        if stem not in known and _valid(npz, meta):
+            shutil.copy2(npz, pool / f".{npz.name}.tmp")
+            os.replace(pool / f".{npz.name}.tmp", pool / npz.name)
+            shutil.copy2(meta, pool / f".{meta.name}.tmp")  # the json last: a half-copied entry is incomplete
+            os.replace(pool / f".{meta.name}.tmp", pool / meta.name)
+
+
+@dataclass(frozen=True)
+class SmokeStore:
+    """A finished smoke ablation: its folder (mlflow.db inside), tracking URI and CLI output."""
+
+    path: Path
+    uri: str
+    stdout: str
+
+
+@pytest.fixture(scope="session")
+def smoke_store(tmp_path_factory: pytest.TempPathFactory) -> SmokeStore:
+    """`python -m experiments ablation --profile smoke --workers 2`, built once per session.
+    Shared: tests may add to it (a re-run, a report logged to the parent run), never remove."""
+    store = tmp_path_factory.mktemp("smoke-store")
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
+    proc = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--workers", "2"],
+                          cwd=store, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    return SmokeStore(store, env["MLFLOW_TRACKING_URI"], proc.stdout)

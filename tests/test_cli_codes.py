@@ -1,0 +1,48 @@
+"""The experiments CLI's exit codes that other tests do not reach: 1 when a cell fails (with the
+failure in the summary), and 2 with one line for a bad `--queue` (before anything is written)."""
+
+from __future__ import annotations
+
+import pytest
+from cli_helpers import run_cli
+from mlflow.tracking import MlflowClient
+
+
+@pytest.mark.slow
+def test_ablation_with_a_failing_cell_exits_with_code_1(tmp_path):
+    proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name", "bad",
+                    "--set", "train.lr=1e30", "--set", "eval.figures=0"], tmp_path)  # the loss overflows at once
+    assert proc.returncode == 1, proc.stdout + proc.stderr[-3000:]
+    assert "0 cell(s) run" not in proc.stdout and "1 failed" in proc.stdout
+    assert "FAILED cells:" in proc.stdout and "TrainingDiverged" in proc.stdout
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("ablation")
+    (cell,) = client.search_runs([exp.experiment_id], "tags.role = 'cell'")
+    assert cell.info.status == "FAILED" and "non-finite loss" in cell.data.tags["error"]
+    (parent,) = client.search_runs([exp.experiment_id], "tags.role = 'parent'")
+    assert parent.info.status == "FAILED" and parent.data.tags["failed_cells"] == "1"
+
+
+@pytest.mark.slow  # three command-line start-ups
+@pytest.mark.parametrize("queue,uri,message", [
+    ("http://127.0.0.1:1/queue", None, "--queue: unsupported URL 'http://127.0.0.1:1/queue'"),
+    ("mysql://db/queue", None, "--queue: unsupported URL 'mysql://db/queue'"),
+    (None, "http://127.0.0.1:1", "--queue: required when MLFLOW_TRACKING_URI is not a local sqlite store"),
+])
+def test_bad_queue_is_one_line_and_exit_code_2(tmp_path, queue, uri, message):
+    args = ["ablation", "--profile", "smoke", "--worker"] + (["--queue", queue] if queue else [])
+    proc = run_cli(args, tmp_path, timeout=120, **({"MLFLOW_TRACKING_URI": uri} if uri else {}))
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if "error" in line.lower()]  # (pybullet prints a banner)
+    assert len(errors) == 1 and errors[0].startswith(f"error: {message}"), proc.stderr
+    assert "Traceback" not in proc.stderr and not list(tmp_path.iterdir())  # nothing written
+
+
+def test_default_queue_lies_next_to_a_local_store(tmp_path):
+    from experiments.config import ConfigError
+    from experiments.queue import resolve_queue
+
+    assert resolve_queue(None, f"sqlite:///{tmp_path / 'mlflow.db'}") == f"sqlite:///{tmp_path / 'queue.db'}"
+    assert resolve_queue("postgresql://h/q") == "postgresql://h/q"
+    with pytest.raises(ConfigError, match="required when MLFLOW_TRACKING_URI"):
+        resolve_queue(None, "http://tracking:5000")

@@ -1,0 +1,124 @@
+"""A cell's trained STM as an MLflow model: logged once per run into the run's experiment,
+loadable by mlflow.pytorch.load_model as the trained module, and the README's "Use a trained
+model" snippet run as written against a smoke study's store."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+import yaml
+from mlflow.tracking import MlflowClient
+
+from envs.tasks import get_task
+from experiments.model_logging import MODEL_NAME, log_stm, logged_model_id, pinned_requirements
+from stm.config import ModelConfig
+from stm.model import STM
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture()
+def store_run(tmp_path):
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = client.create_experiment("ablation", artifact_location=(tmp_path / "mlartifacts").as_uri())
+    run = client.create_run(exp, tags={"task": "reacher"})
+    client.log_param(run.info.run_id, "seed", "3")
+    return client, run.info.run_id, exp
+
+
+def _tiny_stm() -> STM:
+    torch.manual_seed(0)
+    task = get_task("reacher")
+    return STM(ModelConfig.from_dict({"hidden_size": 8, "num_layers": 1, "head": "mdn", "mixtures": 2}), task.layout)
+
+
+def test_model_is_logged_once_into_the_runs_experiment(store_run):
+    client, run_id, exp = store_run
+    model = _tiny_stm()
+    first = log_stm(model, client, run_id)
+    assert log_stm(model, client, run_id) == first  # a resumed cell does not log a second model
+    models = client.search_logged_models([exp])
+    assert [(m.model_id, m.name, m.source_run_id) for m in models] == [(first, MODEL_NAME, run_id)]
+    assert logged_model_id(client, run_id) == first
+    assert models[0].params["seed"] == "3"  # the run's params travel with the model
+    outputs = client.get_run(run_id).outputs.model_outputs
+    assert [o.model_id for o in outputs] == [first]
+
+    previous = mlflow.get_tracking_uri()
+    mlflow.set_tracking_uri(client.tracking_uri)
+    try:
+        loaded = mlflow.pytorch.load_model(f"runs:/{run_id}/{MODEL_NAME}")
+        local = Path(mlflow.artifacts.download_artifacts(f"models:/{first}"))
+    finally:
+        mlflow.set_tracking_uri(previous)
+    assert type(loaded) is STM
+    for name, value in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], value), name
+
+    mlmodel = yaml.safe_load((local / "MLmodel").read_text())
+    inputs = yaml.safe_load(mlmodel["signature"]["inputs"])
+    assert inputs[0]["tensor-spec"]["shape"][-1] == model.dim
+    assert (local / "input_example.json").exists()
+    requirements = (local / "requirements.txt").read_text().split()
+    assert f"torch=={metadata.version('torch')}" in requirements
+    assert any(r.startswith("acrmdn") for r in requirements)
+
+
+def test_a_model_left_unfinished_by_a_killed_attempt_is_replaced(store_run):
+    client, run_id, exp = store_run
+    stale = client.create_logged_model(exp, name=MODEL_NAME, source_run_id=run_id)  # PENDING, no artifacts
+    assert logged_model_id(client, run_id) is None
+    new = log_stm(_tiny_stm(), client, run_id)
+    assert new != stale.model_id
+    assert [m.model_id for m in client.search_logged_models([exp])] == [new]
+
+
+def test_requirements_are_pinned_to_this_environment():
+    pins = dict(r.split("==") for r in pinned_requirements())
+    assert pins["torch"] == metadata.version("torch") and pins["mlflow"] == mlflow.__version__
+
+
+def _readme_snippet() -> str:
+    text = (REPO / "README.md").read_text()
+    section = text.split("## Use a trained model", 1)[1].split("\n## ", 1)[0]
+    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+
+
+@pytest.mark.slow
+def test_readme_snippet_rolls_out_a_trained_cell(tmp_path, monkeypatch):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env.pop("MLFLOW_TRACKING_URI", None)  # the study writes ./mlflow.db, which the snippet reads
+    proc = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--variants",
+                           "ac-lstm-mdn", "--workers", "1"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    (cell,) = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.task = 'reacher'")
+    ckpt = torch.load(client.download_artifacts(cell.info.run_id, "checkpoint/model.pt", str(tmp_path)),
+                      weights_only=False)
+
+    monkeypatch.chdir(tmp_path)
+    previous = mlflow.get_tracking_uri()
+    namespace: dict = {}
+    try:
+        exec(compile(_readme_snippet(), "README.md", "exec"), namespace)
+    finally:
+        mlflow.set_tracking_uri(previous)
+    assert namespace["run"].info.run_id == cell.info.run_id
+    model = namespace["model"]
+    assert type(model) is STM and model.is_mdn
+    for name, value in ckpt["model"].items():  # the logged model is the trained one
+        assert torch.equal(model.state_dict()[name], value), name
+    task, rollout, metrics = namespace["task"], namespace["rollout"], namespace["metrics"]
+    assert rollout.q.shape == (1, task.max_steps + 1, 7)
+    assert np.allclose(rollout.q[0, 0], namespace["q0"])
+    assert set(metrics) >= {"success", "final_distance"} and metrics["final_distance"] > 0
