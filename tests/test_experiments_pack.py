@@ -6,14 +6,11 @@ its reason while the other seed of the pack finishes."""
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 
 import numpy as np
 import pytest
-from cli_helpers import held_env, run_cli, wait_for_signals
+from cli_helpers import kill_at_checkpoints, run_cli
 from mlflow.tracking import MlflowClient
 
 SMALL = ["--set", "eval.rollouts=2", "--set", "eval.figures=1"]
@@ -67,19 +64,8 @@ def test_killed_packed_job_resumes_every_seed_from_its_checkpoint(tmp_path):
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--pack", "2", "--workers", "1",
             "--study-name", "killed", "--set", "train.iters=100", "--set", "train.checkpoint_every=50",
             "--set", "train.val_every=0", "--set", "eval.figures=0", "--set", "eval.rollouts=2"]
-    signals, log = tmp_path / "signals", tmp_path / "killed.log"
-    # the pack holds once both seeds' first checkpoints are in the store (experiments/worker.py's test hook)
-    with open(log, "w") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path,
-                                env=held_env(tmp_path, signals), stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
-    try:
-        marks = wait_for_signals(signals, 2, proc, log=log)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-    assert sorted(it for _, it in marks) == [50, 50] and proc.returncode == -signal.SIGKILL
+    marks, returncode = kill_at_checkpoints(args, tmp_path, 2, tmp_path / "killed.log")
+    assert sorted(it for _, it in marks) == [50, 50] and returncode == -signal.SIGKILL
     killed = _cells(client)
     assert sorted(r.info.run_id for r in killed.values()) == sorted(run_id for run_id, _ in marks)
     for r in killed.values():
