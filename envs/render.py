@@ -7,6 +7,8 @@ from pathlib import Path
 
 import matplotlib
 
+from envs.figures import save_figure
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
@@ -124,12 +126,7 @@ def render_task(task: Task, demos: Demos | None, out: Path, n_episodes: int = 6)
     ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    pdf = out.with_suffix(".pdf")
-    fig.savefig(out, dpi=150)
-    fig.savefig(pdf)
-    plt.close(fig)
-    return [out, pdf]
+    return [Path(p) for p in save_figure(fig, out.with_suffix(""), dpi=150)]
 
 
 def _draw_goal_blocks(ax, goals: np.ndarray, size: float, color) -> None:

@@ -13,19 +13,19 @@ import argparse
 import sys
 from pathlib import Path
 
-from experiments.sweep import JOURNAL_NAME, open_storage
-from experiments.tracking import store_dir, tracking_uri
+from experiments.sweep_storage import JOURNAL_NAME, JOURNAL_PREFIX, open_storage, storage_spec
+from experiments.tracking import tracking_uri
 
 
 def default_storage() -> str:
-    return f"journal:{store_dir(tracking_uri()) / JOURNAL_NAME}"
+    return storage_spec(None, tracking_uri())  # the sweeps' default: the journal next to the MLflow store
 
 
 def open_existing(spec: str):
     """The Optuna storage named by spec; a journal file must exist already (the dashboard
     only reads sweeps: an empty new file would show nothing and hide a wrong folder)."""
-    if spec.startswith("journal:"):
-        path = Path(spec.removeprefix("journal:"))
+    if spec.startswith(JOURNAL_PREFIX):
+        path = Path(spec.removeprefix(JOURNAL_PREFIX))
         if not path.is_file():
             raise FileNotFoundError(f"no sweep storage at {path}; run `nox -s sweep` first or pass --storage URL")
     return open_storage(spec)

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from envs.figures import save_figure
 from experiments.stats import success_summary
 
 log = logging.getLogger(__name__)
@@ -252,7 +253,5 @@ def rollout_figure(detail: TaskEvaluation, path: Path, n: int) -> Path:
         title += f", success {rate:.0%}"
     fig.suptitle(title)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path.with_suffix(""), dpi=110)  # PNG and PDF
     return path

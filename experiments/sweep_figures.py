@@ -6,6 +6,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from envs.figures import save_figure
+
 log = logging.getLogger(__name__)
 
 
@@ -38,11 +40,7 @@ def sweep_figures(study, out: Path) -> list[Path]:
                 warnings.simplefilter("ignore")
                 ax = fn(study)
             fig = ax.flat[0].figure if hasattr(ax, "flat") else ax.figure
-            for ext in ("png", "pdf"):
-                path = out / f"{name}.{ext}"
-                fig.savefig(path, dpi=110, bbox_inches="tight")
-                paths.append(path)
-            plt.close(fig)
+            paths += [Path(p) for p in save_figure(fig, out / name, dpi=110, bbox_inches="tight")]
         except Exception as exc:  # optuna raises for degenerate studies (e.g. zero-variance importances)
             log.info("figure %s skipped: %s", name, exc)
             plt.close("all")

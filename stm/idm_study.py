@@ -28,11 +28,11 @@ import torch
 from pydantic import Field, ValidationInfo, field_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
+from envs.figures import save_figure
 from envs.kinematics import tip_position_np
 from envs.sim import Scene
 from envs.tasks.reacher import SUCCESS_RADIUS  # the reacher's success criterion
 from stm.config import STRICT, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
-from stm.figures import save_figure
 from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, Tracking, save_idm, track_plan, train_idm
 from stm.idm_data import ExplorationConfig, idm_features, load_or_collect
 from stm.smoothing import smooth_gd

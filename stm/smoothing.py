@@ -30,8 +30,8 @@ import numpy as np
 import scipy.linalg
 import torch
 
+from envs.figures import save_figure
 from envs.kinematics import SawyerKinematics, default_kinematics
-from stm.figures import save_figure
 
 log = logging.getLogger(__name__)
 

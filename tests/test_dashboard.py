@@ -16,7 +16,7 @@ from pathlib import Path
 import optuna
 import pytest
 
-from experiments.sweep import JOURNAL_NAME, open_storage
+from experiments.sweep_storage import JOURNAL_NAME, open_storage
 
 REPO = Path(__file__).resolve().parents[1]
 

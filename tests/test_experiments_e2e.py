@@ -73,7 +73,7 @@ def test_ablation_smoke_end_to_end(smoke_store, tmp_path):
         artifacts = {f.path for d in ("checkpoint", "config", "figures", "rollouts")
                      for f in client.list_artifacts(run.info.run_id, d)}
         assert {"checkpoint/model.pt", "config/config.json", "figures/reacher_rollouts.png",
-                "figures/reacher-changing-goal_rollouts.png", "rollouts/reacher.npz",
+                "figures/reacher_rollouts.pdf", "figures/reacher-changing-goal_rollouts.png", "rollouts/reacher.npz",
                 "rollouts/reacher-changing-goal.npz", "rollouts/ik_timing.json"} <= artifacts
         png = Path(client.download_artifacts(run.info.run_id, "figures/reacher_rollouts.png", str(tmp_path)))
         assert drawn_colours(png) > 10  # paths, markers, axes and text: not a blank canvas

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cli_helpers import held_env, run_cli, wait_for_signals
 from mlflow.tracking import MlflowClient
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,51 +39,44 @@ def _cells(client: MlflowClient):
 @pytest.mark.slow
 def test_ctrl_c_marks_running_cells_killed_and_a_rerun_resumes(tmp_path):
     args = [sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--workers", "2",
-            "--study-name", "intr", "--set", "train.iters=1500", "--set", "train.checkpoint_every=50",
+            "--study-name", "intr", "--set", "train.iters=100", "--set", "train.checkpoint_every=50",
             "--set", 'variants=["ac-lstm", "ac-lstm-mdn"]', *FAST]
-    # two auto-conditioned cells of 1500 iterations (~30 s each on a quiet machine): both are still
-    # training when the Ctrl-C below comes (a teacher-forced smoke cell trains 1500 iterations in 3 s)
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    # SIGINT back to its default in the child: a test run started in the background (`cmd &`, as CI runners
-    # may) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt for a Ctrl-C
-    proc = subprocess.Popen(args, cwd=tmp_path, env=_env(tmp_path), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    interrupted = False
-    try:
-        deadline = time.monotonic() + 240
-        while time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.3)
-            try:
-                runs = _cells(client)
-            except Exception:  # store not created yet
-                continue
-            if len(runs) == 2 and all(r.info.status == "RUNNING"
-                                      and int(r.data.tags.get("checkpoint_iteration", 0)) >= 50 for r in runs):
-                os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole group
-                interrupted = True
-                break
-        out, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    assert interrupted, "the cells finished or never checkpointed before Ctrl-C"
+    signals, log = tmp_path / "signals", tmp_path / "study.log"
+    # both cells signal their first checkpoint (iteration 50) and hold there: the Ctrl-C comes at a known
+    # point, never racing the training. SIGINT back to its default in the child: a test run started in the
+    # background (`cmd &`, as CI runners may) inherits SIGINT ignored, and Python would never raise
+    # KeyboardInterrupt for it
+    with open(log, "w") as out:
+        proc = subprocess.Popen(args, cwd=tmp_path, env=held_env(tmp_path, signals), stdout=out,
+                                stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            held = wait_for_signals(signals, 2, proc, log=log)
+            os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole group
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    err = log.read_text()
+    assert sorted(i for _, i in held) == [50, 50]
     assert proc.returncode == 130, err[-3000:]
     assert "re-run the same command to resume" in err
     runs = {r.info.run_id: r for r in _cells(client)}
+    assert runs.keys() == {run_id for run_id, _ in held}
     assert {r.info.status for r in runs.values()} == {"KILLED"}, {r.info.status for r in runs.values()}
     parent = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.role = 'parent'")
     assert parent[0].info.status == "KILLED"
 
-    again = subprocess.run(args, cwd=tmp_path, env=_env(tmp_path), capture_output=True, text=True, timeout=400)
+    again = run_cli(args[3:], tmp_path)
     assert again.returncode == 0, again.stderr[-3000:]
     after = {r.info.run_id: r for r in _cells(client)}
     assert after.keys() == runs.keys()  # resumed in the same runs, none added
     for run in after.values():
         assert run.info.status == "FINISHED"
-        assert int(run.data.tags["resumed_from_iteration"]) >= 50
-        assert run.data.metrics["train/iterations"] == 1500
+        assert run.data.tags["resumed_from_iteration"] == "50"
+        assert run.data.metrics["train/iterations"] == 100
 
 
 def _smoke_cell(*overrides: str, variant: str = "lstm"):

@@ -36,14 +36,14 @@ from typing import Any
 
 import numpy as np
 import pybullet as p
-from tqdm import tqdm
 
 from envs.kinematics import tip_position_np
 from envs.robot import LIMITS, NEUTRAL_Q
 from envs.sim import TABLE_TOP_Z, Scene
+from envs.tasks._bimodal import BimodalReacher
 from envs.tasks.base import Demos, Episode, register
 from envs.tasks.expert import check_trajectory, min_jerk, solve_tool_down_path, tool_down_at, velocity_ratio
-from envs.tasks.reacher import SUCCESS_RADIUS, Reacher
+from envs.tasks.reacher import SUCCESS_RADIUS
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +124,7 @@ def _sample(rng: np.random.Generator, box, n: int) -> np.ndarray:
 
 
 @register
-class ReacherObstacleMultimodal(Reacher):
+class ReacherObstacleMultimodal(BimodalReacher):
     """Reacher around a pillar, passed left or right at random (multimodal demonstrations)."""
 
     name = "reacher-obstacle-multimodal"
@@ -195,53 +195,12 @@ class ReacherObstacleMultimodal(Reacher):
         ok = converged & LIMITS.contains(q).all(axis=1) & (velocity_ratio(q, self.step_seconds) <= 1.0)
         return q, steps, ok
 
-    def expert_trajectory(self, q_start: np.ndarray, goal: np.ndarray, max_steps: int | None = None,
-                          mode: int = 0) -> np.ndarray:
-        q_start = np.asarray(q_start, dtype=float).reshape(1, 7)
-        goal = np.asarray(goal, dtype=float).reshape(1, 3)
-        steps = self.steps_for(np.linalg.norm(goal - tip_position_np(q_start), axis=-1))
-        if max_steps is not None:
-            steps = np.minimum(steps, max_steps)
-        q, steps, _ = self.expert(q_start, goal, np.array([mode]), steps)
-        return q[0, : steps[0] + 1]
-
-    # demonstrations ------------------------------------------------------------
-    def demos(self, seed: int = 0) -> Demos:
-        rng = np.random.default_rng(seed)
-        todo = rng.permutation(np.arange(self.n_demos) % 2)  # balanced, drawn before (so independent of) the states
-        accepted: list[tuple[np.ndarray, np.ndarray, int, int]] = []
-        rejections = {"ik": 0, "physics": 0, "collision": 0}
-        while len(todo):
-            need, modes = len(todo), todo
-            kept = np.zeros(need, dtype=bool)
-            q0, goals = self.sample_pairs(rng, need)
-            q, steps, ok = self.expert(q0, goals, modes)
-            for b in tqdm(range(need), desc=f"{self.name} demos: physics replay", disable=None, leave=False):
-                if not ok[b]:
-                    rejections["ik"] += 1
-                    continue
-                path = q[b, : steps[b] + 1]
-                tip, touched = obstacle_scene().play(path, self.step_seconds)
-                if touched:
-                    rejections["collision"] += 1
-                    continue
-                missed = np.linalg.norm(tip[-1] - goals[b]) >= SUCCESS_RADIUS
-                if missed or classify(tip, tip[0], goals[b])[0] != modes[b]:
-                    rejections["physics"] += 1
-                    continue
-                accepted.append((path, goals[b], int(steps[b]), int(modes[b])))
-                kept[b] = True
-            todo = modes[~kept]  # a rejected demo is redrawn with its mode, so the split stays balanced
-        if sum(rejections.values()):
-            log.info("%s demos: resampled %s", self.name, rejections)
-        lengths = np.array([a[2] for a in accepted])
-        T = int(lengths.max())
-        qs = np.stack([np.concatenate([a[0], np.repeat(a[0][-1:], T - a[2], axis=0)]) for a in accepted])
-        psi = np.repeat(np.stack([a[1] for a in accepted])[:, None], T + 1, axis=1)
-        modes = [a[3] for a in accepted]
-        meta = {"rejections": rejections, "expert_success": 1.0, "replayed_in_physics": len(accepted),
-                "modes": modes, "mode_names": list(MODES)}
-        return Demos(q=qs, grip=np.zeros(qs.shape[:2]), psi=psi, lengths=lengths, meta=meta)
+    def replay(self, path: np.ndarray, goal: np.ndarray, mode: int) -> str:
+        tip, touched = obstacle_scene().play(path, self.step_seconds)
+        if touched:
+            return "collision"
+        missed = np.linalg.norm(tip[-1] - goal) >= SUCCESS_RADIUS
+        return "physics" if missed or classify(tip, tip[0], goal)[0] != mode else ""
 
     def demo_modes(self, demos: Demos) -> np.ndarray:
         """Mode label (N,) of each demonstration from its kinematic tip path (0 left, 1 right, -1 none)."""

@@ -33,14 +33,14 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from envs.ik import DOWN
 from envs.kinematics import default_kinematics, tip_position_np
 from envs.robot import LIMITS, NEUTRAL_Q
+from envs.tasks._bimodal import BimodalReacher
 from envs.tasks.base import Demos, Episode, register
 from envs.tasks.expert import check_trajectory, line_paths, min_jerk, physics_scene, velocity_ratio
-from envs.tasks.reacher import SUCCESS_RADIUS, Reacher
+from envs.tasks.reacher import SUCCESS_RADIUS
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,7 @@ def classify(c: float) -> int:
 
 
 @register
-class ReacherPostureMultimodal(Reacher):
+class ReacherPostureMultimodal(BimodalReacher):
     """Reacher ending in one of two arm postures at random (multimodal demonstrations)."""
 
     name = "reacher-posture-multimodal"
@@ -155,50 +155,10 @@ class ReacherPostureMultimodal(Reacher):
         ok &= velocity_ratio(q, self.step_seconds) <= 1.0
         return q, steps, ok
 
-    def expert_trajectory(self, q_start: np.ndarray, goal: np.ndarray, max_steps: int | None = None,
-                          mode: int = 0) -> np.ndarray:
-        q_start = np.asarray(q_start, dtype=float).reshape(1, 7)
-        goal = np.asarray(goal, dtype=float).reshape(1, 3)
-        steps = self.steps_for(np.linalg.norm(goal - tip_position_np(q_start), axis=-1))
-        if max_steps is not None:
-            steps = np.minimum(steps, max_steps)
-        q, steps, _ = self.expert(q_start, goal, np.array([mode]), steps)
-        return q[0, : steps[0] + 1]
-
-    # demonstrations ------------------------------------------------------------
-    def demos(self, seed: int = 0) -> Demos:
-        rng = np.random.default_rng(seed)
-        todo = rng.permutation(np.arange(self.n_demos) % 2)  # balanced, drawn before (so independent of) the states
-        accepted: list[tuple[np.ndarray, np.ndarray, int, int]] = []
-        rejections = {"ik": 0, "physics": 0}
-        while len(todo):
-            need, modes = len(todo), todo
-            kept = np.zeros(need, dtype=bool)
-            q0 = self.sample_starts(rng, need)
-            goals = self.sample_goals(rng, tip_position_np(q0))
-            q, steps, ok = self.expert(q0, goals, modes)
-            final, _ = self.postures(goals)
-            for b in tqdm(range(need), desc=f"{self.name} demos: physics replay", disable=None, leave=False):
-                if not ok[b]:
-                    rejections["ik"] += 1
-                    continue
-                path = q[b, : steps[b] + 1]
-                res = self._play(path, goals[b], final[b])
-                if not res["success"] or classify(res["posture_coordinate"]) != modes[b]:
-                    rejections["physics"] += 1
-                    continue
-                accepted.append((path, goals[b], int(steps[b]), int(modes[b])))
-                kept[b] = True
-            todo = modes[~kept]  # a rejected demo is redrawn with its mode, so the split stays balanced
-        if sum(rejections.values()):
-            log.info("%s demos: resampled %s", self.name, rejections)
-        lengths = np.array([a[2] for a in accepted])
-        T = int(lengths.max())
-        qs = np.stack([np.concatenate([a[0], np.repeat(a[0][-1:], T - a[2], axis=0)]) for a in accepted])
-        psi = np.repeat(np.stack([a[1] for a in accepted])[:, None], T + 1, axis=1)
-        meta = {"rejections": rejections, "expert_success": 1.0, "replayed_in_physics": len(accepted),
-                "modes": [a[3] for a in accepted], "mode_names": list(MODES)}
-        return Demos(q=qs, grip=np.zeros(qs.shape[:2]), psi=psi, lengths=lengths, meta=meta)
+    def replay(self, path: np.ndarray, goal: np.ndarray, mode: int) -> str:
+        final, _ = self.postures(goal[None])
+        res = self._play(path, goal, final[0])
+        return "" if res["success"] and classify(res["posture_coordinate"]) == mode else "physics"
 
     def demo_modes(self, demos: Demos) -> np.ndarray:
         """Mode label (N,) of each demonstration from its final configuration (0, 1; -1 between)."""

@@ -1,5 +1,6 @@
-"""Saving a figure: one PNG and one PDF per figure, the single place that does it (the smoothing and IDM studies,
-the reports)."""
+"""Saving a figure: one PNG and one PDF per figure, the single place that does it (task renders, rollout
+figures, sweeps, the smoothing and IDM studies, the reports). In envs, the lowest layer, so every package
+can import it."""
 
 from __future__ import annotations
 
