@@ -1,6 +1,8 @@
 """The ablation runner: cells = training tasks x variants x seeds, each a child run of the
 study's parent run; FINISHED cells with the same config hash are skipped, unfinished ones
 resume in their own run from its checkpoint artifact, failures are recorded and summarised.
+The seeds of a cell group (task x variant) train together as one packed job, up to `pack` of
+them (experiments/pack.py; `--pack 1`: each cell alone).
 
 The main process creates the store, the experiment, the parent run and every child run; cells
 then run in K spawned processes (experiments/procs.py: they stop with the main process) that
@@ -25,6 +27,7 @@ from pathlib import Path
 from experiments.cells import Cell, build_cells
 from experiments.claims import Claimed, claimed_cell, is_live
 from experiments.config import StudyConfig
+from experiments.pack import pack_units, run_unit
 from experiments.procs import worker_pool
 from experiments.tracking import (
     ABLATION,
@@ -153,22 +156,23 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     for key in outcome.skipped:
         log.info("skip %s: FINISHED with the same config hash", key)
     prepare_datasets([cell for cell, _ in todo])
+    units = pack_units(todo, cfg.pack)
     workers = cfg.workers or default_workers()
-    workers = max(1, min(workers, len(todo))) if todo else 1
+    workers = max(1, min(workers, len(units))) if units else 1
     interactive = sys.stderr.isatty() if progress is None else progress
-    log.info("study %r: %d cells (%d to run, %d done) with %d worker(s); store %s", study_name, len(cells),
-             len(todo), len(outcome.skipped), workers, uri)
+    log.info("study %r: %d cells (%d to run in %d job(s), %d done) with %d worker(s); store %s", study_name,
+             len(cells), len(todo), len(units), len(outcome.skipped), workers, uri)
     level = logging.getLogger().getEffectiveLevel()
     claim = (cfg.sweep.heartbeat, cfg.sweep.grace_period)
     bar = _progress(len(todo), interactive)
     held: list[tuple[Cell, str]] = []
     try:
         if workers == 1:
-            for cell, run_id in todo:
-                got = claimed_cell(cell, uri, run_id, interactive, level, TORCH_THREADS, *claim, False)
-                _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
+            for unit in units:
+                got = run_unit(*_unit_args(unit), uri, interactive, level, TORCH_THREADS, *claim, False)
+                _record_unit(outcome, unit, got, bar, len(todo), interactive, held)
         else:
-            _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, held)
+            _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held)
         for cell, run_id in held:  # cells another command of this study trains: wait for them
             got = claimed_cell(cell, uri, run_id, interactive, level, TORCH_THREADS, *claim, True)
             _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
@@ -216,27 +220,39 @@ def _record(outcome: StudyOutcome, cell: Cell, run_id: str, got: Claimed, bar, t
                  f": {res.error}" if res.error else "")
 
 
-def _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, held) -> None:
+def _unit_args(unit: list[tuple[Cell, str]]) -> tuple[list[Cell], list[str]]:
+    return [cell for cell, _ in unit], [run_id for _, run_id in unit]
+
+
+def _record_unit(outcome: StudyOutcome, unit: list[tuple[Cell, str]], got: list[Claimed], bar, total: int,
+                 interactive: bool, held: list) -> None:
+    for (cell, run_id), g in zip(unit, got, strict=True):
+        _record(outcome, cell, run_id, g, bar, total, interactive, held)
+
+
+def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held) -> None:
+    """Each unit (a cell, or a cell group's seeds packed: experiments/pack.py) in a worker process."""
     pending = {}
+    total = sum(len(u) for u in units)
     try:
         with worker_pool(workers) as pool:
-            for cell, run_id in todo:
-                fut = pool.submit(claimed_cell, cell, uri, run_id, False, level, TORCH_THREADS, *claim,
-                                  False)
-                pending[fut] = (cell, run_id)
+            for unit in units:
+                fut = pool.submit(run_unit, *_unit_args(unit), uri, False, level, TORCH_THREADS, *claim, False)
+                pending[fut] = unit
             for fut in as_completed(pending):
-                cell, run_id = pending[fut]
+                unit = pending[fut]
                 try:
                     got = fut.result()
                 except BrokenProcessPool:
                     raise
                 except Exception as exc:  # e.g. a result that failed to pickle
-                    got = Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}"))
-                _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
+                    got = [Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}"))
+                           for cell, run_id in unit]
+                _record_unit(outcome, unit, got, bar, total, interactive, held)
     except BrokenProcessPool as exc:
         done = {r.run_id for r in outcome.results} | {run_id for _, run_id in held}
         client = Client(uri)
-        for cell, run_id in todo:
+        for cell, run_id in [pair for unit in units for pair in unit]:
             if run_id not in done:
                 text = f"worker process died ({exc}); re-run the study to resume this cell"
                 try:
@@ -245,7 +261,7 @@ def _run_parallel(todo, uri, workers, outcome, bar, level, interactive, claim, h
                 except Exception:
                     log.exception("could not mark run %s FAILED", run_id)
                 _record(outcome, cell, run_id, Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=text)),
-                        bar, len(todo), interactive, held)
+                        bar, total, interactive, held)
 
 
 def success_table(client: Client, experiment_id: str, parent_id: str) -> str:

@@ -103,7 +103,9 @@ def try_claim(client: Client, run_id: str, grace: float, me: str) -> int:
     return n
 
 
-class _Beat:
+class Beat:
+    """The holder's beat on its claim, in a thread, until `release`."""
+
     def __init__(self, client: Client, run_id: str, n: int, every: float):
         self.client, self.run_id, self.n, self.every = client, run_id, n, every
         self.stopped = threading.Event()
@@ -126,14 +128,12 @@ class _Beat:
             log.warning("could not release the claim on run %s", self.run_id)
 
 
-def claimed_cell(cell: Cell, uri: str, run_id: str, progress: bool, level: int, threads: int | None,
-                 beat: float, grace: float, wait: bool) -> Claimed:
-    """Run the cell in its run if this process wins the claim (see the module docstring)."""
-    from experiments.worker import CellResult, run_cell
+def acquire(client: Client, run_id: str, key: str, me: str, beat: float, grace: float, wait: bool) -> Claimed | int:
+    """The number of the claim this process took on the run, or how the cell went without it
+    ("done", "held" when not `wait`, "failed"; see Claimed)."""
+    from experiments.worker import CellResult
 
-    logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
-    client, me, announced = Client(uri), holder_id(), False
-    key = cell.key
+    announced = False
     while True:
         run = client.get_run(run_id)
         if run.info.status == "FINISHED":
@@ -143,14 +143,26 @@ def claimed_cell(cell: Cell, uri: str, run_id: str, progress: bool, level: int, 
             return Claimed("failed", CellResult(key, run_id, "FAILED", error=f"in another process: {error}"))
         n = try_claim(client, run_id, grace, me)
         if n:
-            break
+            return n
         if not wait:
             return Claimed("held")
         if not announced:
             log.info("cell %s is being trained by %s; waiting for it", key, latest_claim(run)[1] or "another process")
             announced = True
         time.sleep(beat)
-    beater = _Beat(client, run_id, n, beat)
+
+
+def claimed_cell(cell: Cell, uri: str, run_id: str, progress: bool, level: int, threads: int | None,
+                 beat: float, grace: float, wait: bool) -> Claimed:
+    """Run the cell in its run if this process wins the claim (see the module docstring)."""
+    from experiments.worker import run_cell
+
+    logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
+    client = Client(uri)
+    n = acquire(client, run_id, cell.key, holder_id(), beat, grace, wait)
+    if isinstance(n, Claimed):
+        return n
+    beater = Beat(client, run_id, n, beat)
     try:
         res = run_cell(cell, uri, run_id, progress, level, threads)
     finally:

@@ -47,6 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--tasks", nargs="+", default=None, help="training tasks (default: the profile's)")
     ab.add_argument("--variants", nargs="+", default=None, help="variants (default: the profile's)")
     ab.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1")
+    ab.add_argument("--pack", type=int, default=None, metavar="K", help="train up to K seeds of a cell group "
+                    "(task x variant) together as one packed model (default: all of them; 1: each cell alone)")
     ab.add_argument("--study-name", default=None, help="parent run name (default: from the profile and config)")
     ab.add_argument("--worker", action="store_true", help="pull cells from a queue shared with other worker "
                     "commands (other hosts too; see docs/scale-out.md); --workers K local processes")
@@ -85,7 +87,8 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
     are reported before anything is written."""
     if args.command == "ablation":
         return load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
-                            seeds=args.seeds, workers=args.workers, study_name=args.study_name)
+                            seeds=args.seeds, workers=args.workers, pack=args.pack,
+                            study_name=args.study_name)
     space = args.space.split(",") if args.space else None
     cfg = load_profile(args.profile, args.overrides, workers=args.workers, **{
         "sweep.task": args.task, "sweep.variant": args.variant, "sweep.space": space,

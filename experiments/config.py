@@ -70,6 +70,7 @@ class StudyConfig:
     variants: Annotated[tuple[str, ...], BeforeValidator(lambda v: _all_or_tuple(v, known_variants))]  # or "all"
     seeds: PositiveInt = 2  # seeds 0..seeds-1
     workers: NonNegativeInt = 0  # 0: one per CPU core
+    pack: NonNegativeInt = 0  # seeds of a cell group trained together (experiments/pack.py); 0: all, 1: unpacked
     study_name: str = ""  # the parent run's name; load_profile derives it (see derived_study_name)
     model: dict[str, Any] = field(default_factory=dict)  # the profile's (and --set) ModelConfig values
     train: dict[str, Any] = field(default_factory=dict)  # ... TrainConfig values
@@ -114,7 +115,7 @@ class StudyConfig:
         return dict(self.task_configs[task].data)
 
     def study_hash(self) -> str:
-        """Hash of everything that shapes results (not tasks/variants/seeds/workers, which select cells)."""
+        """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor workers/pack)."""
         d = self.to_dict()
         return config_hash({k: d[k] for k in ("model", "train", "per_task", "eval")})
 

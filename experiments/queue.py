@@ -11,6 +11,12 @@ artifact) and beats a heartbeat meanwhile. A cell whose worker stops beating for
 worker enqueues the cells that are neither FINISHED nor queued; duplicates from workers that
 started at the same moment are skipped when popped. A worker stops when nothing is WAITING or
 RUNNING, so the last one out writes a complete summary. We keep no scheduler of our own.
+
+With `--pack K` (default: all seeds) an entry holds up to K seeds of one cell group, which the
+worker that pops it trains as one packed job (experiments/pack.py): the entry is the unit, so
+packing needs no coordination between workers. The first worker to queue a cell sets its
+entry's size; entries that share a cell (workers started at once) are run by the earliest,
+and the cell claims keep a cell from training twice whatever the entries.
 """
 
 from __future__ import annotations
@@ -20,8 +26,8 @@ import time
 
 from experiments.ablation import EXPERIMENT, TORCH_THREADS, StudyOutcome, finish_parent, prepare_datasets, prepare_runs
 from experiments.cells import Cell, build_cells
-from experiments.claims import claimed_cell
 from experiments.config import ConfigError, StudyConfig, from_dict
+from experiments.pack import pack_units, run_unit
 from experiments.procs import worker_pool
 from experiments.sweep_storage import describe, drain, open_storage, trials_in, worker_id
 from experiments.tracking import (
@@ -57,13 +63,21 @@ def resolve_queue(url: str | None, uri: str | None = None) -> str:
     return url
 
 
-def enqueue_missing(study, cells: list[Cell], finished: set[str]) -> int:
-    """Queue every cell that is neither FINISHED in MLflow nor WAITING/RUNNING in the queue."""
-    queued = {t.user_attrs.get("config_hash") for t in trials_in(study, "WAITING", "RUNNING")}
+def entry_hashes(trial) -> list[str]:
+    """The config hashes of a queue entry's cells (one cell, or a cell group's seeds to pack)."""
+    return list(trial.user_attrs.get("config_hashes") or [trial.user_attrs.get("config_hash")])
+
+
+def enqueue_missing(study, cells: list[Cell], finished: set[str], pack: int = 1) -> int:
+    """Queue every cell that is neither FINISHED in MLflow nor WAITING/RUNNING in the queue, in
+    entries of up to `pack` seeds of one cell group (experiments.pack.pack_units)."""
+    queued = {h for t in trials_in(study, "WAITING", "RUNNING") for h in entry_hashes(t)}
     new = [c for c in cells if c.config_hash not in finished | queued]
-    for cell in new:
-        study.enqueue_trial({}, user_attrs={"config_hash": cell.config_hash, "cell": cell.key},
-                            skip_if_exists=False)
+    for unit in pack_units([(c, "") for c in new], pack):
+        hashes = [c.config_hash for c, _ in unit]
+        attrs = {"config_hash": hashes[0], "cell": unit[0][0].key} if len(unit) == 1 else \
+            {"config_hashes": hashes, "cell": ", ".join(c.key for c, _ in unit)}
+        study.enqueue_trial({}, user_attrs=attrs, skip_if_exists=False)
     return len(new)
 
 
@@ -77,34 +91,41 @@ def _cell_objective(cfg: StudyConfig, cells: dict[str, Cell], client: Client, ur
     def objective(trial) -> float:
         import optuna
 
-        h = trial.user_attrs.get("config_hash")
-        if h not in cells:  # a fresh trial, asked for after another worker took the last WAITING one
+        hashes = [h for h in entry_hashes(trial) if h in cells]
+        if not hashes:  # a fresh trial, asked for after another worker took the last WAITING one
             trial.set_user_attr("skipped", "nothing queued")
             raise optuna.TrialPruned("no cell queued")
-        cell = cells[h]
         trial.set_user_attr("worker", worker_id())
-        if h in finished_hashes(client, experiment_id, parent_id):
-            trial.set_user_attr("skipped", "already FINISHED")
+        finished = finished_hashes(client, experiment_id, parent_id)
+        # queued twice by workers that started together: the earlier entry runs a cell
+        earlier = {h for t in trials_in(trial.study, "WAITING", "RUNNING") if t.number < trial.number
+                   for h in entry_hashes(t)}
+        todo = [cells[h] for h in hashes if h not in finished | earlier]
+        if not todo:
+            trial.set_user_attr("skipped", "already FINISHED or queued earlier")
             return 0.0
-        earlier = [t for t in trials_in(trial.study, "WAITING", "RUNNING")
-                   if t.user_attrs.get("config_hash") == h and t.number < trial.number]
-        if earlier:  # queued twice by workers that started together: the earlier entry runs it
-            trial.set_user_attr("skipped", f"duplicate of queue entry {earlier[0].number}")
-            return 0.0
-        (cell, run_id), = prepare_runs(client, experiment_id, parent_id, [cell])[0]
-        trial.set_user_attr("mlflow_run_id", run_id)
-        set_tags(client, run_id, {"worker": worker_id(), "queue_entry": trial.number})
-        log.info("worker %s: cell %s (queue entry %d, run %s)", worker_id(), cell.key, trial.number, run_id)
-        # the claim waits out a dead worker's claim on the run (on another host: up to the grace period)
-        got = claimed_cell(cell, uri, run_id, False, level, TORCH_THREADS, cfg.sweep.heartbeat,
-                           cfg.sweep.grace_period, True)
-        if got.kind == "done":
+        unit = prepare_runs(client, experiment_id, parent_id, todo)[0]
+        if not unit:
             trial.set_user_attr("skipped", "FINISHED by another command")
             return 0.0
-        res = got.result
-        ran.append(res)
-        if res.status != "FINISHED":
-            raise RuntimeError(res.error)  # the queue entry FAILs too; a re-run queues the cell again
+        run_ids = [run_id for _, run_id in unit]
+        trial.set_user_attr("mlflow_run_id" if len(unit) == 1 else "mlflow_run_ids", run_ids[0] if len(unit) == 1
+                            else run_ids)
+        for run_id in run_ids:
+            set_tags(client, run_id, {"worker": worker_id(), "queue_entry": trial.number})
+        log.info("worker %s: %s (queue entry %d, run(s) %s)", worker_id(), ", ".join(c.key for c, _ in unit),
+                 trial.number, ", ".join(run_ids))
+        # the claims wait out a dead worker's claim on a run (on another host: up to the grace period)
+        got = run_unit([c for c, _ in unit], run_ids, uri, False, level, TORCH_THREADS,
+                       cfg.sweep.heartbeat, cfg.sweep.grace_period, True)
+        results = [g.result for g in got if g.kind != "done"]
+        if not results:
+            trial.set_user_attr("skipped", "FINISHED by another command")
+            return 0.0
+        ran.extend(results)
+        errors = [f"{r.key}: {r.error}" for r in results if r.status != "FINISHED"]
+        if errors:
+            raise RuntimeError("; ".join(errors))  # the queue entry FAILs too; a re-run queues the cell again
         return 0.0
 
     return objective
@@ -150,7 +171,7 @@ def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
                                    "study_hash": cfg.study_hash(), **provenance_params()})
     storage = open_storage(queue_url, cfg.sweep, uri)  # an RDB storage (resolve_queue): heartbeats on
     study = optuna.create_study(study_name=QUEUE_PREFIX + study_name, storage=storage, load_if_exists=True)
-    added = enqueue_missing(study, cells, finished_hashes(client, experiment_id, parent_id))
+    added = enqueue_missing(study, cells, finished_hashes(client, experiment_id, parent_id), cfg.pack)
     log.info("study %r: %d cells, %d newly queued; queue %s", study_name, len(cells), added, describe(queue_url))
     prepare_datasets(cells)  # cached per host: built once, not in every process
     level = logging.getLogger().getEffectiveLevel()

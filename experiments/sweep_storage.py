@@ -103,7 +103,11 @@ class RetryDeadTrial:
         log.warning("trial %d: its worker %s stopped beating; marked FAIL and re-queued", frozen.number,
                     frozen.user_attrs.get("worker", "?"))
         self.retry(study, frozen)
-        run_id = frozen.user_attrs.get("mlflow_run_id")
+        # a queue entry of a packed cell group holds several runs (experiments/queue.py)
+        for run_id in frozen.user_attrs.get("mlflow_run_ids") or [frozen.user_attrs.get("mlflow_run_id")]:
+            self._fail_run(run_id, frozen)
+
+    def _fail_run(self, run_id: str | None, frozen) -> None:
         if run_id and self.uri:
             client = Client(self.uri)
             # what the dead worker reported to Optuna may not have reached MLflow (metrics are batched)

@@ -57,3 +57,22 @@ def wait_for_signals(signal_file: Path, n: int, proc: subprocess.Popen, timeout:
         if time.monotonic() > deadline:
             raise AssertionError(f"no checkpoint signal from {n} cell(s) within {timeout} s: {tail}")
         time.sleep(0.05)  # waiting on the file, not as synchronisation: the cells hold once they signal
+
+
+def kill_at_checkpoints(args: list[str], store: Path, n: int, log: Path) -> tuple[list[tuple[str, int]], int]:
+    """Run `python -m experiments ARGS` in `store` with the fault hook on until `n` cells have
+    signalled their first checkpoint, then SIGKILL its process group: their (run_id, iteration)
+    and the command's return code."""
+    import signal
+
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=store,
+                                env=held_env(store, log.with_suffix(".signals")), stdout=out,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        marks = wait_for_signals(log.with_suffix(".signals"), n, proc, log=log)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    return marks, proc.returncode

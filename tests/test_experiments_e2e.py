@@ -6,7 +6,6 @@ pruning that a re-run continues."""
 
 from __future__ import annotations
 
-import os
 import queue
 import re
 import signal
@@ -17,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import cli_env, held_env, run_cli, wait_for_signals
+from cli_helpers import cli_env, kill_at_checkpoints, run_cli
 from mlflow.tracking import MlflowClient
 from oracles import drawn_colours, wilson
 
@@ -102,19 +101,9 @@ def test_cell_killed_at_its_checkpoint_resumes_from_it(tmp_path):
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name", "killed",
             "--set", "train.iters=100", "--set", "train.checkpoint_every=50", "--set", "train.val_every=0",
             "--set", "eval.figures=0", "--set", "eval.rollouts=2"]
-    signals, log = tmp_path / "signals", tmp_path / "killed.log"
-    # the cell holds at its first checkpoint (experiments/worker.py's test hook) until the SIGKILL
-    with open(log, "w") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=tmp_path,
-                                env=held_env(tmp_path, signals), stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
-    try:
-        (run_id, iteration), = wait_for_signals(signals, 1, proc, log=log)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-    assert iteration == 50 and proc.returncode == -signal.SIGKILL
+    marks, returncode = kill_at_checkpoints(args, tmp_path, 1, tmp_path / "killed.log")
+    (run_id, iteration), = marks
+    assert iteration == 50 and returncode == -signal.SIGKILL
     killed = client.get_run(run_id)
     assert killed.info.status == "RUNNING"  # SIGKILL: nobody marked it
     assert killed.data.tags["checkpoint_iteration"] == "50"
