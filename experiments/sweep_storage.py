@@ -18,6 +18,7 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
+import tenacity
 from mlflow.entities import Metric
 
 from experiments.config import SweepConfig
@@ -39,6 +40,12 @@ def has_heartbeat(spec: str) -> bool:
     return not spec.startswith(JOURNAL_PREFIX)
 
 
+def _schema_race(exc: BaseException) -> bool:
+    from sqlalchemy.exc import IntegrityError, ProgrammingError
+
+    return isinstance(exc, IntegrityError | ProgrammingError)
+
+
 def open_storage(spec: str, sweep: SweepConfig | None = None, uri: str | None = None):
     """The Optuna storage; an RDB one beats heartbeats and retries dead workers' trials when
     `sweep` is given (their MLflow runs, in store `uri`, are marked FAILED)."""
@@ -56,8 +63,12 @@ def open_storage(spec: str, sweep: SweepConfig | None = None, uri: str | None = 
     db = sqlite_path(spec)
     with warnings.catch_warnings():  # heartbeats are marked experimental in Optuna
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        if db is None:
-            return optuna.storages.RDBStorage(spec, **kwargs)
+        if db is None:  # a server database: processes creating its schema at once race (a unique-key error
+            # in the loser's CREATE); the schema then exists, so the loser's retry just opens it
+            return tenacity.retry(retry=tenacity.retry_if_exception(_schema_race), reraise=True,
+                                  stop=tenacity.stop_after_attempt(5),
+                                  wait=tenacity.wait_random_exponential(multiplier=0.2, max=3))(
+                optuna.storages.RDBStorage)(spec, **kwargs)
         with schema_lock(db):  # processes creating a fresh SQLite schema at once would race
             return optuna.storages.RDBStorage(spec, **kwargs)
 
