@@ -24,6 +24,7 @@ class Cell:
     study_name: str
     dataset_seed: int = 0  # the demonstrations are the same for every training seed
     data: dict[str, Any] = field(default_factory=dict)  # training task's constructor options (e.g. n_demos)
+    keep_checkpoints: int = 0  # StudyConfig.keep_checkpoints (not hashed: it shapes no result)
 
     @property
     def key(self) -> str:
@@ -75,5 +76,5 @@ def build_cells(cfg: StudyConfig) -> list[Cell]:
                 model, train = resolve_stm_configs(cfg, task, variant, seed)
                 cells.append(Cell(task=task, variant=variant, seed=seed, model=model, train=train, eval=cfg.eval,
                                   eval_tasks=eval_tasks, profile=cfg.profile, study_name=study_name,
-                                  data=cfg.data_options(task)))
+                                  data=cfg.data_options(task), keep_checkpoints=cfg.keep_checkpoints))
     return cells

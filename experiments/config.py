@@ -71,6 +71,9 @@ class StudyConfig:
     seeds: PositiveInt = 2  # seeds 0..seeds-1
     workers: NonNegativeInt = 0  # 0: one per CPU core
     pack: NonNegativeInt = 0  # seeds of a cell group trained together (experiments/pack.py); 0: all, 1: unpacked
+    # every N iterations a copy of each cell's checkpoint stays in its run (artifact checkpoint_at/<iteration>/),
+    # so that a long run's intermediate models can be evaluated later (success vs iterations); 0: none. Not hashed.
+    keep_checkpoints: NonNegativeInt = 0
     study_name: str = ""  # the parent run's name; load_profile derives it (see derived_study_name)
     model: dict[str, Any] = field(default_factory=dict)  # the profile's (and --set) ModelConfig values
     train: dict[str, Any] = field(default_factory=dict)  # ... TrainConfig values
@@ -115,7 +118,7 @@ class StudyConfig:
         return dict(self.task_configs[task].data)
 
     def study_hash(self) -> str:
-        """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor workers/pack)."""
+        """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor workers/pack/keep_checkpoints)."""
         d = self.to_dict()
         return config_hash({k: d[k] for k in ("model", "train", "per_task", "eval")})
 

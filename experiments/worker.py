@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "model.pt"
 CHECKPOINT_DIR = "checkpoint"
+KEPT_CHECKPOINT_DIR = "checkpoint_at"  # checkpoint_at/<iteration>/model.pt: copies kept by Cell.keep_checkpoints
 # Test hooks (never set in normal use): once a checkpoint is in the store, append "<run_id> <iteration>"
 # to the file named by SIGNAL_FILE_ENV, and with HOLD_ENV=1 then wait there until killed or interrupted,
 # so a fault test kills or interrupts a cell at a known point instead of racing its training.
@@ -201,6 +202,9 @@ class CellRun:
         (a pack signals its seeds together)."""
         self.buffer.flush()
         self.client.log_artifact(self.run_id, str(path), CHECKPOINT_DIR)
+        every = self.cell.keep_checkpoints
+        if every and iteration % every == 0:
+            self.client.log_artifact(self.run_id, str(path), f"{KEPT_CHECKPOINT_DIR}/{iteration}")
         set_tags(self.client, self.run_id, {"checkpoint_iteration": iteration})
         if signal:
             test_signal([(self.run_id, iteration)])

@@ -35,8 +35,9 @@ def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
     for pack in ("1", "2"):
         store = tmp_path / f"pack{pack}"
         store.mkdir()
+        keep = ["--set", "keep_checkpoints=5"] if pack == "2" else []  # not hashed: the same cells either way
         proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
-                     "--pack", pack, *SMALL], store)
+                     "--pack", pack, *SMALL, *keep], store)
         assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
         assert ("in 1 job(s)" if pack == "2" else "in 2 job(s)") in proc.stderr
         stores[pack] = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
@@ -56,6 +57,11 @@ def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
                   for c, r in ((stores["1"], a), (stores["2"], p))]
         np.testing.assert_allclose(losses[1], losses[0], rtol=1e-4)  # stm's packed equivalence (tests/test_stm_packed)
         assert [m.step for m in stores["2"].get_metric_history(p.info.run_id, "val/metric")] == [5, 10]
+        kept = {f.path for f in stores["2"].list_artifacts(p.info.run_id, "checkpoint_at")}
+        assert kept == {"checkpoint_at/5", "checkpoint_at/10"}  # every 5 of 10 iterations, each seed its own
+        assert [f.path for f in stores["2"].list_artifacts(p.info.run_id, "checkpoint_at/5")] == \
+            ["checkpoint_at/5/model.pt"]
+        assert not stores["1"].list_artifacts(a.info.run_id, "checkpoint_at")
 
 
 @pytest.mark.slow
