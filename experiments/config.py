@@ -118,7 +118,8 @@ class StudyConfig:
         return dict(self.task_configs[task].data)
 
     def study_hash(self) -> str:
-        """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor workers/pack/keep_checkpoints)."""
+        """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor
+        workers/pack/keep_checkpoints)."""
         d = self.to_dict()
         return config_hash({k: d[k] for k in ("model", "train", "per_task", "eval")})
 
