@@ -18,7 +18,7 @@ import pandas as pd
 
 from experiments.stats import interval, pct, success_cell
 from reports.plotting import FigureResult, gap, mark_gap, panel_grid, save
-from reports.store import Study
+from reports.store import Study, order_variants
 
 log = logging.getLogger(__name__)
 
@@ -87,18 +87,49 @@ def multimodal_table(study: Study) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=[*fixed, *modes, "between", "collided"] if rows else fixed)
 
 
+def rollout_feedback_of(study: Study) -> str:
+    """What the study's rollouts fed back, from its runs' params (sample with its temperature, e.g.
+    "sample T=0.4"); '?' when the runs logged none, 'mixed' when they differ."""
+    c = study.ok
+    if "params.eval.feedback" not in c:
+        return "?"
+    train = c["params.train.feedback"] if "params.train.feedback" in c else pd.Series("", index=c.index)
+    temp = c["params.train.temperature"] if "params.train.temperature" in c else pd.Series("1.0", index=c.index)
+    seen = set()
+    for ev, tr, t in zip(c["params.eval.feedback"], train, temp, strict=True):
+        used = "sample" if tr == "sample" else ev  # as experiments.evaluation.rollout_feedback
+        seen.add(f"sample T={float(t):g}" if used == "sample" else str(used))
+    return seen.pop() if len(seen) == 1 else ("?" if not seen else "mixed")
+
+
+def feedback_table(studies: list[Study]) -> pd.DataFrame:
+    """multimodal_table of each study with its `feedback` and `study` columns first: the rollout feedbacks side
+    by side (rows by task, variant, then the studies' order)."""
+    parts = [multimodal_table(s).assign(feedback=rollout_feedback_of(s), study=s.name) for s in studies]
+    if not parts:
+        return pd.DataFrame()
+    out = pd.concat(parts, ignore_index=True)
+    out["_v"] = out["variant"].map({v: i for i, v in enumerate(order_variants(out["variant"].unique()))})
+    out["_s"] = out["study"].map({s.name: i for i, s in enumerate(studies)})
+    out = out.sort_values(["eval_task", "_v", "_s"], kind="stable").drop(columns=["_v", "_s"])
+    first = ["feedback", "study"]
+    return out[[*first, *(c for c in out.columns if c not in first)]].reset_index(drop=True)
+
+
 def multimodal_markdown(table: pd.DataFrame, variant_label=str) -> str:
     """multimodal_table as Markdown, one table per task; percentages, '–' where a task has no such label."""
     out = []
     for task, part in table.groupby("eval_task", sort=False):
         modes = [c for c in part.columns if c.startswith("mode_") and part[c].notna().any()]
         extra = [c for c in ("between", "collided") if c in part and part[c].notna().any()]
-        head = ["variant", "success", "Wilson 95%", "seed-aware 95%", "n", "seeds",
+        lead = ["feedback"] if "feedback" in part else []
+        head = [*lead, "variant", "success", "Wilson 95%", "seed-aware 95%", "n", "seeds",
                 *(m.removeprefix("mode_") for m in modes), *extra]
         lines = [f"**{task}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for r in part.to_dict("records"):
-            cells = [variant_label(r["variant"]), pct(r["success"]), interval(r["ci_low"], r["ci_high"]),
-                     interval(r["boot_low"], r["boot_high"]), str(int(r["n"])), str(int(r["seeds"])),
+            cells = [*(str(r[c]) for c in lead), variant_label(r["variant"]), pct(r["success"]),
+                     interval(r["ci_low"], r["ci_high"]), interval(r["boot_low"], r["boot_high"]),
+                     str(int(r["n"])), str(int(r["seeds"])),
                      *(pct(r[c]) for c in [*modes, *extra])]
             lines.append("| " + " | ".join(cells) + " |")
         out.append("\n".join(lines))

@@ -10,7 +10,14 @@ import pytest
 from cli_helpers import run_cli
 from oracles import drawn_colours, is_pdf, wilson
 
-from reports.multimodal import mode_paths, multimodal_markdown, multimodal_table, multimodal_tasks
+from reports.multimodal import (
+    feedback_table,
+    mode_paths,
+    multimodal_markdown,
+    multimodal_table,
+    multimodal_tasks,
+    rollout_feedback_of,
+)
 from reports.store import Store
 
 TASKS = ("reacher-obstacle-multimodal", "reacher-posture-multimodal")
@@ -63,6 +70,14 @@ def test_table_rows_are_the_runs_numbers_and_the_rollouts_labels(study):
     text = multimodal_markdown(table)
     assert f"**{TASKS[0]}**" in text and "| left | right | between | collided |" in text
     assert "| j2_pos | j2_neg | between |" in text
+
+
+def test_feedback_table_names_each_studys_rollout_feedback(study):
+    assert rollout_feedback_of(study) == "component_mean"  # the smoke profile's default, as the runs logged it
+    both = feedback_table([study, study])
+    assert len(both) == 2 * len(multimodal_table(study)) and set(both["study"]) == {"mm-tiny"}
+    assert list(both["variant"][:2]) == ["lstm", "lstm"]  # a variant's rows together, the studies in order
+    assert "| feedback | variant |" in multimodal_markdown(both)
 
 
 def test_mode_paths_draws_demonstrations_and_every_variant(study, tmp_path):
