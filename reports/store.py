@@ -17,7 +17,9 @@ Child artifact `rollouts/<E>.npz` (np.savez_compressed; metres, robot base frame
     optional per episode: success (B,) 0/1 or NaN, final_distance (B,), goal (B, 3), new_goal (B, 3)
     (NaN if none), switch_step (B,) int (-1 if none), radius (B,) m, center (B, 3) m,
     ideal_tip (B, K, 3) ideal path (circle), expert_tip (B, Te+1, 3) the IK expert's direct path
-    (changing goal; NaN-padded rows at the end).
+    (changing goal; NaN-padded rows at the end); every other per-episode numeric result of the task's
+    evaluate as (B,) float under its own name, NaN where missing (e.g. multimodal tasks: mode_<name> 0/1 one per
+    mode, between 0/1, collided 0/1, lateral_offset m, posture_coordinate).
 Child artifact `rollouts/ik_timing.json`: {E: {"n_trajectories", "batch_size", "horizon",
     "stm_seconds_per_traj", "stm_batched_seconds_per_traj", "ik_seconds_per_traj",
     "ik_batched_seconds_per_traj"}}; absent -> the `time/*_seconds_per_traj` metrics of the run.
