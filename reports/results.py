@@ -56,7 +56,7 @@ from pathlib import Path
 import pandas as pd
 
 from envs.fileio import atomic_write_text
-from reports import figures, sweeps, tables, trajectories
+from reports import figures, milestones, multimodal, sweeps, tables, trajectories
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
@@ -203,6 +203,8 @@ ABLATION_TABLES: dict[str, Callable[[Results, Study], Table | pd.DataFrame]] = {
     "success_table": lambda r, s: tables.success_table(r.summary("success", s), s),
     "circle_table": lambda r, s: tables.circle_table(r.summary("circle", s), s),
     "train_time_table": lambda r, s: tables.train_time_table(r.summary("train", s), s),
+    "budget_table": lambda r, s: tables.budget_table(s),
+    "multimodal_table": lambda r, s: multimodal.multimodal_table(s),
 }
 ABLATION_FIGURES: dict[str, Callable[[Results, Study, Path], FigureResult]] = {
     "success_bars": lambda r, s, f: figures.success_bars(r.summary("success", s), s, f),
@@ -212,6 +214,8 @@ ABLATION_FIGURES: dict[str, Callable[[Results, Study, Path], FigureResult]] = {
     "training_curves": lambda r, s, f: figures.training_curves(s, f),
     "tip_paths": lambda r, s, f: trajectories.tip_paths(s, f),
     "changing_goal": lambda r, s, f: trajectories.changing_goal(s, f),
+    "mode_paths": lambda r, s, f: multimodal.mode_paths(s, f),
+    "success_vs_iterations": lambda r, s, f: milestones.success_vs_iterations(s, f),  # of a milestones study
 }
 
 
@@ -265,13 +269,16 @@ def regeneration_command(ablation: Study | None, sweeps_used: list[Study], templ
     return shlex.join(args).replace("'$MLFLOW_TRACKING_URI'", '"$MLFLOW_TRACKING_URI"')
 
 
+NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milestones study: its runs are cells too)
+
+
 def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dict[str, Study]:
-    """The studies the template names (study="NAME"), each checked to be an ablation-kind study of the store."""
+    """The studies the template names (study="NAME"), each checked to be of a NAMED_KINDS kind in the store."""
     named: dict[str, Study] = {}
     for ph in placeholders:
         if ph.study is not None and ph.study not in named:
             try:
-                named[ph.study] = selection.pick(ph.study, "ablation")
+                named[ph.study] = selection.pick(ph.study, NAMED_KINDS)
             except StoreError as exc:
                 raise ResultsError(f"{ph}: {exc}") from None
     return named

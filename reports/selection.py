@@ -38,8 +38,9 @@ class Selection:
             self._loaded[row["run_id"]] = load(self.store, row)
         return self._loaded[row["run_id"]]
 
-    def pick(self, ident: str, kind: str) -> Study:
-        """The study of this parent run id (its own, or its original one when imported) or study_name."""
+    def pick(self, ident: str, kind: str | tuple[str, ...]) -> Study:
+        """The study of this parent run id (its own, or its original one when imported) or study_name, of
+        `kind` (or one of several kinds)."""
         p = self.parents
         hit = p[p["run_id"] == ident]
         for col in (f"tags.{SOURCE_RUN_TAG}", "tags.study_name"):
@@ -47,8 +48,9 @@ class Selection:
                 hit = p[p[col] == ident].head(1)
         if hit.empty:
             raise StoreError(f"unknown study {ident!r} (not a parent run id or study_name) in {self.store.uri}")
-        if self.kinds[hit.index[0]] != kind:
-            raise StoreError(f"study {ident!r} is of kind {self.kinds[hit.index[0]]!r}, not {kind!r}")
+        kinds = (kind,) if isinstance(kind, str) else kind
+        if self.kinds[hit.index[0]] not in kinds:
+            raise StoreError(f"study {ident!r} is of kind {self.kinds[hit.index[0]]!r}, not {' or '.join(kinds)!r}")
         return self.load(hit.iloc[0].to_dict())
 
     def latest(self, kind: str) -> Study | None:
