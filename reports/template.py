@@ -16,7 +16,7 @@ WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2)}  # 
 ABLATION_KINDS = ("success_table", "circle_table", "train_time_table", "figure")
 ABLATION_FIGURES = ("success_bars", "circles", "compute_time", "train_time", "training_curves", "tip_paths",
                     "changing_goal")
-SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate")
+SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 KNOWN = ", ".join([*(f"{{{{ {k} }}}}" for k in NO_ARG), '{{ figure("NAME") }}', '{{ sweep_table("TASK") }}',
                    '{{ sweep_figure("TASK"[, "NAME"]) }}'])
 
