@@ -14,8 +14,9 @@ Search space (`--space` picks a subset; the others keep the profile's values):
 The sampled values are applied after the variant, so v = 0 on an auto-conditioned variant
 means "the same head, trained with teacher forcing".
 
-Samplers (`sweep.sampler`), each seeded by `sweep.seed` (plus the worker's index, so that the
-processes of one sweep do not draw the same values):
+Samplers (`sweep.sampler`), each seeded by `sweep.seed` plus the worker's index (and, on an RDB
+storage, a number from the host name), so that the processes of one sweep do not draw the same
+values:
 - "tpe": TPE after `sweep.tpe_startup` random start-up trials, by default a third of the trials
   (at least one). Optuna's default of 10 start-up trials meant that a sweep of <= 10 trials never
   used TPE: it drew the same random values as every other sweep with the same seed.
@@ -63,8 +64,10 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import socket
 import tempfile
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -178,6 +181,8 @@ def check_sweep(cfg: StudyConfig) -> None:
 def _load(cfg: StudyConfig, spec: str, name: str, uri: str, worker: int):
     import optuna
 
+    if has_heartbeat(spec):  # an RDB storage that several machines may share: their processes draw apart too
+        worker += zlib.crc32(socket.gethostname().encode()) % 100_000 * 1_000
     return optuna.load_study(study_name=name, storage=open_storage(spec, cfg.sweep, uri),
                              sampler=make_sampler(cfg, worker), pruner=make_pruner(cfg))
 
