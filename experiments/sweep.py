@@ -21,10 +21,11 @@ values:
   (at least one). Optuna's default of 10 start-up trials meant that a sweep of <= 10 trials never
   used TPE: it drew the same random values as every other sweep with the same seed.
 - "grid": every point of the product of the swept parameters' grids once (the trials are capped
-  at the grid's size). `sweep.grid_uv = [[1, 9], [5, 5], [2, 2]]` sweeps u and v together as
-  those pairs (one Optuna parameter "uv", values "u/v") instead of grid_u x grid_v, so that a
-  grid over m x a few schedules is one command and no m is tied to one schedule:
-      python -m experiments sweep --profile results --sampler grid --space m,u,v
+  at the grid's size; fewer cover part of it, with a warning). `sweep.grid_uv = [[1, 9], [5, 5],
+  [2, 2]]` sweeps u and v together as those pairs (one Optuna parameter "uv", values "u/v")
+  instead of grid_u x grid_v, so that a grid over m x a few schedules is one command and no m is
+  tied to one schedule:
+      python -m experiments sweep --profile results --sampler grid --space m,u,v --trials 15
           --set 'sweep.grid_uv=[[1, 9], [5, 5], [2, 2]]' --set sweep.seeds=2 --set sweep.pruner=none
 - "random": uniform draws from the ranges.
 
