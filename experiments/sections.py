@@ -14,6 +14,7 @@ from stm.config import STRICT, NonNegativeInt, PositiveInt
 
 Sampler = Literal["tpe", "grid", "random"]
 Objective = Literal["val", "final_distance", "failure_rate"]
+Pruner = Literal["median", "none"]
 SweepParam = Literal["m", "u", "v", "feedback", "sigma_min"]
 # what a rollout may feed back (stm.rollout.FEEDBACKS): a model trains with a Feedback, and its rollouts may
 # also commit to one component per segment (segment_component, segment_track) or draw one per step
@@ -24,6 +25,9 @@ OBJECTIVES: tuple[str, ...] = get_args(Objective)
 SWEEP_PARAMS: tuple[str, ...] = get_args(SweepParam)
 
 
+# integer ranges of the swept values (TPE / random draw from them; grid values must lie in them)
+INT_RANGES: dict[str, tuple[int, int]] = {"m": (1, 20), "u": (1, 10), "v": (0, 10)}
+IntGrid = Annotated[tuple[int, ...], BeforeValidator(as_tuple)]
 Radii = Annotated[tuple[Annotated[float, Field(allow_inf_nan=False)], ...], BeforeValidator(as_tuple)]
 
 
@@ -56,9 +60,17 @@ class SweepConfig:
     study_name: str = ""  # "" -> "<task>-<variant>-<profile>"
     warmup_steps: NonNegativeInt = 0  # median pruner: iterations before pruning may start
     startup_trials: NonNegativeInt = 2  # median pruner: trials completed before pruning may start
+    pruner: Pruner = "median"  # "none": every trial trains to the end (a grid whose every point counts)
     heartbeat: PositiveInt = 10  # s; RDB storages (postgresql://, sqlite:///): a trial's process beats this often
     grace_period: int = 60  # s without a beat before a trial counts as dead (its worker was killed)
     max_retry: NonNegativeInt = 2  # a dead worker's trial is re-queued with the same parameters this many times
+    seeds: PositiveInt = 1  # training seeds per trial (seed .. seed+seeds-1, packed); the objective is their mean
+    tpe_startup: PositiveInt | None = None  # TPE's random start-up trials; None: max(1, trials // 3)
+    # the grid sampler's values (experiments.sweep); grid_uv: (u, v) pairs swept together instead of grid_u x grid_v
+    grid_m: IntGrid = (1, 3, 5, 10, 20)
+    grid_u: IntGrid = (1, 2, 5, 10)
+    grid_v: IntGrid = (0, 1, 2, 5, 10)
+    grid_uv: tuple[tuple[int, int], ...] = ()
 
     @field_validator("task")
     @classmethod
@@ -84,6 +96,33 @@ class SweepConfig:
             raise ValueError(f"unsupported URL {url!r}; allowed: postgresql://..., sqlite:///..., journal:<path>, "
                              "or empty for the journal file next to mlflow.db")
         return url
+
+    @field_validator("grid_m", "grid_u", "grid_v")
+    @classmethod
+    def _grid(cls, values: tuple[int, ...], info: ValidationInfo) -> tuple[int, ...]:
+        return grid_values(values, info.field_name.removeprefix("grid_"))
+
+    @field_validator("grid_uv", mode="before")
+    @classmethod
+    def _uv_shape(cls, pairs: Any) -> Any:
+        if not isinstance(pairs, (list, tuple)) or any(not isinstance(p, (list, tuple)) or len(p) != 2 for p in pairs):
+            shown = [list(x) if isinstance(x, tuple) else x for x in pairs] if isinstance(pairs, tuple) else pairs
+            raise ValueError(f"{shown!r} is not allowed; allowed: a list of [u, v] pairs, e.g. [[1, 9], [5, 5]]")
+        return pairs
+
+    @field_validator("grid_uv")
+    @classmethod
+    def _grid_uv(cls, pairs: tuple[tuple[int, int], ...]) -> tuple[tuple[int, int], ...]:
+        for u, v in pairs:
+            grid_values((u,), "u", "u of a pair")
+            grid_values((v,), "v", "v of a pair")
+        if len(set(pairs)) != len(pairs):
+            raise ValueError("a (u, v) pair appears twice; allowed: distinct pairs [u, v]")
+        return pairs
+
+    def tpe_startup_trials(self) -> int:
+        """TPE's n_startup_trials: `tpe_startup`, else a third of the trials (at least one)."""
+        return self.tpe_startup if self.tpe_startup is not None else max(1, self.trials // 3)
 
     @field_validator("grace_period")
     @classmethod
@@ -119,6 +158,18 @@ def known_variants() -> list[str]:
 
     return list(VARIANTS)
 
+
+def grid_values(values: tuple[int, ...], param: str, what: str = "") -> tuple[int, ...]:
+    """Grid values of an integer swept parameter: distinct, within its range (INT_RANGES)."""
+    low, high = INT_RANGES[param]
+    if not values:
+        raise ValueError(f"empty; allowed: integers {low}..{high}")
+    for x in values:
+        if isinstance(x, bool) or not isinstance(x, int) or not low <= x <= high:
+            raise ValueError(f"{x!r} is not allowed{' as ' + what if what else ''}; allowed: integers {low}..{high}")
+    if len(set(values)) != len(values):
+        raise ValueError(f"a value appears twice in {list(values)}; allowed: distinct integers {low}..{high}")
+    return values
 
 
 def choice(value: Any, allowed: list[str] | tuple[str, ...]) -> Any:

@@ -3,20 +3,46 @@
 
 Search space (`--space` picks a subset; the others keep the profile's values):
 
-| name      | config field        | TPE / random range              | grid values            |
-|-----------|---------------------|---------------------------------|------------------------|
-| m         | model.mixtures      | int 1..20, log scale            | 1, 3, 5, 10, 20        |
-| u         | train.u             | int 1..10                       | 1, 2, 5, 10            |
-| v         | train.v             | int 0..10 (0 = teacher forcing) | 0, 1, 2, 5, 10         |
+| name      | config field        | TPE / random range              | grid values (default)             |
+|-----------|---------------------|---------------------------------|-----------------------------------|
+| m         | model.mixtures      | int 1..20, log scale            | sweep.grid_m: 1, 3, 5, 10, 20     |
+| u         | train.u             | int 1..10                       | sweep.grid_u: 1, 2, 5, 10         |
+| v         | train.v             | int 0..10 (0 = teacher forcing) | sweep.grid_v: 0, 1, 2, 5, 10      |
 | feedback  | train.feedback      | sample, component_mean, mixture_mean (all three)     |
-| sigma_min | model.sigma_min     | float 1e-4..1e-1, log scale     | 1e-4, 1e-3, 1e-2       |
+| sigma_min | model.sigma_min     | float 1e-4..1e-1, log scale     | 1e-4, 1e-3, 1e-2                  |
 
 The sampled values are applied after the variant, so v = 0 on an auto-conditioned variant
 means "the same head, trained with teacher forcing".
 
+Samplers (`sweep.sampler`), each seeded by `sweep.seed` plus the worker's index (and, on an RDB
+storage, a number from the host name), so that the processes of one sweep do not draw the same
+values:
+- "tpe": TPE after `sweep.tpe_startup` random start-up trials, by default a third of the trials
+  (at least one). Optuna's default of 10 start-up trials meant that a sweep of <= 10 trials never
+  used TPE: it drew the same random values as every other sweep with the same seed.
+- "grid": every point of the product of the swept parameters' grids once (the trials are capped
+  at the grid's size; fewer cover part of it, with a warning). `sweep.grid_uv = [[1, 9], [5, 5],
+  [2, 2]]` sweeps u and v together as those pairs (one Optuna parameter "uv", values "u/v")
+  instead of grid_u x grid_v, so that a grid over m x a few schedules is one command and no m is
+  tied to one schedule:
+      python -m experiments sweep --profile results --sampler grid --space m,u,v --trials 15
+          --set 'sweep.grid_uv=[[1, 9], [5, 5], [2, 2]]' --set sweep.seeds=2 --set sweep.pruner=none
+- "random": uniform draws from the ranges.
+
+Seeds: `sweep.seeds` = K trains K seeds per trial (packed) and minimises their mean objective
+(experiments/sweep_objective.py). Pruner (`sweep.pruner`): "median" (Optuna's MedianPruner on
+the validation metric, `sweep.startup_trials`, `sweep.warmup_steps`) or "none" (a grid whose
+every point should be trained to the end).
+
+Parameter importances: at the end of a sweep with >= 2 complete trials and >= 2 swept
+parameters, Optuna's fANOVA (FanovaImportanceEvaluator, seeded by sweep.seed; Optuna 5's default
+would be PED-ANOVA, which looks at the best 10 % of the trials: too few in a sweep of 15-30)
+over the complete trials, normalised to sum 1, logged on the parent run as `importance/<param>`
+(experiments/sweep_figures.py); when they cannot be computed, the tag `importance_note` says why.
+
 Objective (minimised; experiments/sweep_objective.py): "val" (the last validation metric),
-"final_distance" or "failure_rate" over `sweep.eval_rollouts` rollouts. The median pruner
-watches the validation metric. Figures: experiments/sweep_figures.py.
+"final_distance" or "failure_rate" over `sweep.eval_rollouts` rollouts per seed. Figures:
+experiments/sweep_figures.py.
 
 Storage (experiments/sweep_storage.py): by default a JournalFileBackend file `optuna.journal`
 next to mlflow.db (safe for several processes on one host); `--storage postgresql://...` for
@@ -38,8 +64,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
+import socket
 import tempfile
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,8 +76,8 @@ from typing import Any
 from experiments.ablation import TORCH_THREADS, command_line, default_workers
 from experiments.config import ConfigError, StudyConfig, SweepConfig, config_hash, from_dict
 from experiments.procs import worker_pool
-from experiments.sweep_figures import sweep_figures
-from experiments.sweep_objective import GRID, MlflowTrialLink, objective_factory, trial_configs
+from experiments.sweep_figures import importance_evaluator, param_importances, sweep_figures
+from experiments.sweep_objective import UV, MlflowTrialLink, grid_space, objective_factory, trial_configs, uv_pairs
 from experiments.sweep_storage import (
     describe,
     drain,
@@ -78,22 +107,38 @@ log = logging.getLogger(__name__)
 EXPERIMENT = SWEEP
 
 
-def make_sampler(cfg: StudyConfig):
+def make_sampler(cfg: StudyConfig, worker: int = 0):
+    """The sweep's sampler in worker process `worker` (0: the main one): seeded by sweep.seed +
+    worker, since processes with one seed would draw the same random values."""
     import optuna
 
     s = cfg.sweep
+    seed = s.seed + worker
     if s.sampler == "grid":
-        return optuna.samplers.GridSampler({p: GRID[p] for p in s.space}, seed=s.seed)
+        return optuna.samplers.GridSampler(grid_space(s), seed=seed)
     if s.sampler == "random":
-        return optuna.samplers.RandomSampler(seed=s.seed)
-    return optuna.samplers.TPESampler(seed=s.seed)
+        return optuna.samplers.RandomSampler(seed=seed)
+    return optuna.samplers.TPESampler(seed=seed, n_startup_trials=s.tpe_startup_trials())
 
 
 def make_pruner(cfg: StudyConfig):
     import optuna
 
+    if cfg.sweep.pruner == "none":
+        return optuna.pruners.NopPruner()
     return optuna.pruners.MedianPruner(n_startup_trials=cfg.sweep.startup_trials,
                                        n_warmup_steps=cfg.sweep.warmup_steps)
+
+
+def grid_size(cfg: StudyConfig) -> int:
+    return math.prod(len(values) for values in grid_space(cfg.sweep).values())
+
+
+def planned_trials(cfg: StudyConfig) -> int:
+    """sweep.trials, capped at the grid's size for the grid sampler (each point once)."""
+    if cfg.sweep.sampler == "grid":
+        return min(cfg.sweep.trials, grid_size(cfg))
+    return cfg.sweep.trials
 
 
 def study_name(cfg: StudyConfig) -> str:
@@ -105,8 +150,15 @@ def study_name(cfg: StudyConfig) -> str:
         return s.study_name
     name = f"{s.task}-{s.variant}-{cfg.resolved_study_name()}"
     default = SweepConfig()
-    if (tuple(s.space), s.objective) != (tuple(default.space), default.objective):
-        name += "-" + config_hash([list(s.space), s.objective])[:6]
+    # what changes the objective's meaning or the grid; left out at its default, so that the names of
+    # studies from before these fields existed stay
+    extra: dict[str, Any] = {"seeds": s.seeds} if s.seeds != default.seeds else {}
+    if s.sampler == "grid":
+        grid = grid_space(s)
+        if grid != grid_space(dataclasses.replace(default, space=s.space, sampler="grid")):
+            extra["grid"] = grid
+    if (tuple(s.space), s.objective) != (tuple(default.space), default.objective) or extra:
+        name += "-" + config_hash([list(s.space), s.objective, *([extra] if extra else [])])[:6]
     return name
 
 
@@ -116,23 +168,31 @@ def check_sweep(cfg: StudyConfig) -> None:
     if cfg.task_config(cfg.sweep.task).train.val_every <= 0:
         raise ConfigError("train.val_every: must be > 0 for a sweep (the pruner and objective read the "
                           "validation metric); allowed: positive integers")
+    s = cfg.sweep
+    if s.sampler == "grid" and s.grid_uv and not uv_pairs(s):
+        raise ConfigError(f"sweep.grid_uv: (u, v) pairs need both u and v in sweep.space (got "
+                          f"{','.join(s.space)}); allowed: a space with u and v, or grid_uv = []")
     try:
-        trial_configs(cfg, {}, cfg.sweep.seed)
+        for seed in range(s.seed, s.seed + s.seeds):
+            trial_configs(cfg, {}, seed)
     except ValueError as e:
         raise ConfigError(f"sweep: {e}") from None
 
 
-def _load(cfg: StudyConfig, spec: str, name: str, uri: str):
+def _load(cfg: StudyConfig, spec: str, name: str, uri: str, worker: int):
     import optuna
 
-    return optuna.load_study(study_name=name, storage=open_storage(spec, cfg.sweep, uri), sampler=make_sampler(cfg),
-                             pruner=make_pruner(cfg))
+    if has_heartbeat(spec):  # an RDB storage that several machines may share: their processes draw apart too
+        worker += zlib.crc32(socket.gethostname().encode()) % 100_000 * 1_000
+    return optuna.load_study(study_name=name, storage=open_storage(spec, cfg.sweep, uri),
+                             sampler=make_sampler(cfg, worker), pruner=make_pruner(cfg))
 
 
 def _optimize(cfg_dict: dict, spec: str, name: str, uri: str, experiment_id: str, parent_id: str,
-              n_trials: int, total: int, level: int, threads: int | None = None, drain_after: bool = False) -> None:
-    """One optimisation process (the main one or a spawned worker): `n_trials` trials (stopping
-    when `total` are COMPLETE or PRUNED), then, with `drain_after`, the drain loop."""
+              n_trials: int, total: int, level: int, threads: int | None = None, drain_after: bool = False,
+              worker: int = 0) -> None:
+    """One optimisation process (the main one or spawned worker number `worker`): `n_trials`
+    trials (stopping when `total` are COMPLETE or PRUNED), then, with `drain_after`, the drain loop."""
     import optuna
 
     if threads:
@@ -144,7 +204,7 @@ def _optimize(cfg_dict: dict, spec: str, name: str, uri: str, experiment_id: str
     logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
     optuna.logging.set_verbosity(optuna.logging.WARNING if level > logging.DEBUG else optuna.logging.INFO)
     cfg = from_dict(cfg_dict)
-    study = _load(cfg, spec, name, uri)
+    study = _load(cfg, spec, name, uri, worker)
     link = MlflowTrialLink(uri, experiment_id, parent_id, {"task": cfg.sweep.task, "variant": cfg.sweep.variant,
                                                            "profile": cfg.profile, "study_name": name})
     objective = objective_factory(cfg, link)
@@ -169,12 +229,16 @@ class SweepOutcome:
     best_params: dict[str, Any] = field(default_factory=dict)
     failed: int = 0
     seconds: float = 0.0
+    importances: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
         counts = ", ".join(f"{v} {k.lower()}" for k, v in sorted(self.counts.items()))
         lines = [f"sweep {self.study_name!r}: {counts} ({self.seconds:.0f}s); storage {describe(self.storage)}"]
         if self.best_value is not None:
             lines.append(f"best value {self.best_value:.5g} with {self.best_params}")
+        if self.importances:
+            lines.append("parameter importances (fANOVA): "
+                         + ", ".join(f"{k} {v:.2f}" for k, v in self.importances.items()))
         if self.failed:
             lines.append(f"{self.failed} trial(s) FAILED (not recovered by a retry); see the trial runs' error text")
         lines.append(f"runs: {runs_page_url(self.experiment_id)}  (start the UI with `nox -s ui`)")
@@ -229,7 +293,14 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     study = optuna.create_study(study_name=name, storage=storage, direction="minimize", load_if_exists=True,
                                 sampler=make_sampler(cfg), pruner=make_pruner(cfg))
     _fail_stale_trials(study, spec, MlflowTrialLink(uri, experiment_id, parent_id, {}), cfg.sweep.max_retry)
-    remaining = cfg.sweep.trials - len(trials_in(study, "COMPLETE", "PRUNED"))
+    total = planned_trials(cfg)
+    if total < cfg.sweep.trials:
+        log.info("grid sampler: %d grid points, so %d trials (not sweep.trials = %d)", total, total,
+                 cfg.sweep.trials)
+    elif cfg.sweep.sampler == "grid" and total < grid_size(cfg):
+        log.warning("grid sampler: %d trials cover %d of the %d grid points; re-run with --trials %d to finish it",
+                    total, total, grid_size(cfg), grid_size(cfg))
+    remaining = total - len(trials_in(study, "COMPLETE", "PRUNED"))
     workers = max(1, min(cfg.workers or default_workers(), remaining)) if remaining > 0 else 0
     log.info("sweep %r: %d trial(s) to run with %d process(es); storage %s", name, max(remaining, 0), workers,
              describe(spec))
@@ -237,15 +308,15 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     args = (cfg.to_dict(), spec, name, uri, experiment_id, parent_id)
     retries_left = bool(trials_in(study, "WAITING"))
     if workers <= 1:
-        _optimize(*args, max(remaining, 0), cfg.sweep.trials, level, TORCH_THREADS,
-                  has_heartbeat(spec) or retries_left)
+        _optimize(*args, max(remaining, 0), total, level, TORCH_THREADS, has_heartbeat(spec) or retries_left)
     else:
         per = [remaining // workers + (i < remaining % workers) for i in range(workers)]
         with worker_pool(workers) as pool:
-            for f in [pool.submit(_optimize, *args, n, cfg.sweep.trials, level, TORCH_THREADS) for n in per]:
+            for f in [pool.submit(_optimize, *args, n, total, level, TORCH_THREADS, False, i)
+                      for i, n in enumerate(per)]:
                 f.result()
         if has_heartbeat(spec) or trials_in(study, "WAITING"):
-            _optimize(*args, 0, 0, level, TORCH_THREADS, True)
+            _optimize(*args, 0, 0, level, TORCH_THREADS, True, workers)
     return _finish(cfg, client, spec, name, experiment_id, parent_id, start)
 
 
@@ -264,16 +335,28 @@ def _finish(cfg: StudyConfig, client: Client, spec: str, name: str, experiment_i
         best = study.best_trial
         outcome.best_value, outcome.best_params = best.value, best.params
         log_metrics(client, parent_id, {"best_value": best.value, "best_trial": best.number})
-        set_tags(client, parent_id, {f"best.{k}": v for k, v in best.params.items()}
+        set_tags(client, parent_id, {f"best.{k}": v for k, v in expand_uv(best.params).items()}
                  | {"best_run_id": best.user_attrs.get("mlflow_run_id", "")})
     log_metrics(client, parent_id, {f"trials_{k.lower()}": v for k, v in outcome.counts.items()})
+    outcome.importances, note = param_importances(study, cfg.sweep.seed)
+    if outcome.importances:
+        log_metrics(client, parent_id, {f"importance/{k}": v for k, v in outcome.importances.items()})
+    set_tags(client, parent_id, {"importance_evaluator": "fANOVA"} | ({"importance_note": note} if note else {}))
     with tempfile.TemporaryDirectory(prefix="acrmdn-sweep-") as tmp:
-        if sweep_figures(study, Path(tmp)):
+        if sweep_figures(study, Path(tmp), importance_evaluator(cfg.sweep.seed)):
             client.log_artifacts(parent_id, tmp, "figures")
     outcome.seconds = time.perf_counter() - start
     client.set_tag(parent_id, NOTE_TAG, outcome.note())
     client.set_terminated(parent_id, "FINISHED" if not outcome.failed else "FAILED")
     return outcome
+
+
+def expand_uv(params: dict[str, Any]) -> dict[str, Any]:
+    """A trial's parameters with the grid's (u, v) pair "u/v" as u and v (what the configs got)."""
+    out = {k: v for k, v in params.items() if k != UV}
+    if UV in params:
+        out["u"], out["v"] = (int(x) for x in str(params[UV]).split("/"))
+    return out
 
 
 def unrecovered_failures(trials) -> list:

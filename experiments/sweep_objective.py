@@ -6,6 +6,15 @@ of rollouts on fresh task episodes), "final_distance" = the mean of the task's p
 metric over `sweep.eval_rollouts` pybullet rollouts (`Task.sweep_objective`), or "failure_rate" = 1 - their
 success rate (robust where one knocked-off block makes a mean distance of metres, as in
 pick-and-place). The median pruner watches the validation metric through `on_validation`.
+
+Seeds (`sweep.seeds` = K): each trial trains seeds sweep.seed .. sweep.seed+K-1 of the same
+configuration (K > 1: together, with stm.packed_train.train_packed, which gives each seed what
+`train` would) and returns the mean of the K per-seed objectives ("objective/seed<s>" on the
+trial's run): "val" the mean of each seed's last validation metric; "final_distance" and
+"failure_rate" over each seed's own evaluation episodes (evaluate_model picks them from the
+seed, as in an ablation). The pruner sees, at each validation step, the mean over the seeds
+(logged as "val/metric"; each seed's as "seed<s>/val/metric"), so that a trial is pruned on the
+same quantity it is ranked by.
 """
 
 from __future__ import annotations
@@ -16,7 +25,10 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from experiments.config import StudyConfig
+import numpy as np
+
+from experiments.config import StudyConfig, SweepConfig
+from experiments.sections import INT_RANGES
 from experiments.sweep_storage import worker_id
 from experiments.tracking import (
     PARENT_TAG,
@@ -29,21 +41,43 @@ from experiments.tracking import (
     set_tags,
 )
 
-GRID = {"m": [1, 3, 5, 10, 20], "u": [1, 2, 5, 10], "v": [0, 1, 2, 5, 10],
-        "feedback": ["sample", "component_mean", "mixture_mean"], "sigma_min": [1e-4, 1e-3, 1e-2]}
+# grid values of the swept parameters that are not integers (m, u, v: the sweep.grid_* fields)
+GRID = {"feedback": ["sample", "component_mean", "mixture_mean"], "sigma_min": [1e-4, 1e-3, 1e-2]}
 FIELDS = {"m": ("model", "mixtures"), "u": ("train", "u"), "v": ("train", "v"),
           "feedback": ("train", "feedback"), "sigma_min": ("model", "sigma_min")}
+UV = "uv"  # the grid sampler's parameter for (u, v) pairs swept together (sweep.grid_uv), values "u/v"
 
 
-def suggest(trial, space: tuple[str, ...]) -> dict[str, Any]:
-    """Sample the swept parameters (see the table in experiments/sweep.py)."""
+def uv_pairs(s: SweepConfig) -> tuple[tuple[int, int], ...]:
+    """The (u, v) pairs the grid sampler sweeps together: sweep.grid_uv on a grid over u and v, else ()."""
+    return s.grid_uv if s.sampler == "grid" and {"u", "v"} <= set(s.space) else ()
+
+
+def grid_space(s: SweepConfig) -> dict[str, list]:
+    """The grid sampler's search space: each swept parameter's grid values; u and v as one
+    parameter "uv" (values "u/v") when sweep.grid_uv gives pairs."""
+    grids = {"m": list(s.grid_m), "u": list(s.grid_u), "v": list(s.grid_v), **GRID}
+    pairs = uv_pairs(s)
+    space = {p: grids[p] for p in s.space if not (pairs and p in ("u", "v"))}
+    if pairs:
+        space[UV] = [f"{u}/{v}" for u, v in pairs]
+    return space
+
+
+def suggest(trial, space: tuple[str, ...], pairs: tuple[tuple[int, int], ...] = ()) -> dict[str, Any]:
+    """Sample the swept parameters (see the table in experiments/sweep.py); `pairs`: u and v as
+    one (u, v) pair (uv_pairs)."""
     out: dict[str, Any] = {}
     if "m" in space:
-        out["m"] = trial.suggest_int("m", 1, 20, log=True)
-    if "u" in space:
-        out["u"] = trial.suggest_int("u", 1, 10)
-    if "v" in space:
-        out["v"] = trial.suggest_int("v", 0, 10)
+        out["m"] = trial.suggest_int("m", *INT_RANGES["m"], log=True)
+    if pairs:
+        u, v = trial.suggest_categorical(UV, [f"{u}/{v}" for u, v in pairs]).split("/")
+        out["u"], out["v"] = int(u), int(v)
+    else:
+        if "u" in space:
+            out["u"] = trial.suggest_int("u", *INT_RANGES["u"])
+        if "v" in space:
+            out["v"] = trial.suggest_int("v", *INT_RANGES["v"])
     if "feedback" in space:
         out["feedback"] = trial.suggest_categorical("feedback", GRID["feedback"])
     if "sigma_min" in space:
@@ -122,51 +156,131 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
 
         from envs.datasets import load_demos
         from envs.tasks import get_task
-        from experiments.evaluation import evaluate_model
         from experiments.worker import seed_everything
-        from stm.train import train
 
         run_id = link.start(trial)
         client = link.client
-        params = suggest(trial, cfg.sweep.space)
-        seed = cfg.sweep.seed
-        model_cfg, train_cfg = trial_configs(cfg, params, seed)
+        params = suggest(trial, cfg.sweep.space, uv_pairs(cfg.sweep))
+        seeds = [cfg.sweep.seed + k for k in range(cfg.sweep.seeds)]
+        configs = [trial_configs(cfg, params, s) for s in seeds]
+        model_cfg, train_cfg = configs[0]
         log_params(client, run_id, {**{f"trial.{k}": v for k, v in params.items()},
                                     **flatten({"model": model_cfg.to_dict(), "train": train_cfg.to_dict()}),
-                                    "task": cfg.sweep.task, "variant": cfg.sweep.variant, **provenance_params()})
+                                    "seeds": ",".join(map(str, seeds)), "task": cfg.sweep.task,
+                                    "variant": cfg.sweep.variant, **provenance_params()})
         task = get_task(cfg.sweep.task, **cfg.data_options(cfg.sweep.task))
         demos = load_demos(task, seed=0)
-        seed_everything(seed)
+        seed_everything(seeds[0])
         buffer = MetricBuffer(client, run_id)
-        last: dict[str, float] = {}
-        pruned = {"flag": False}
-
-        def on_validation(iteration: int, value: float) -> bool:
-            buffer.add(iteration, {"val/metric": value})
-            last["val"] = value
-            if not math.isfinite(value):
-                return False
-            trial.report(value, iteration)
-            if trial.should_prune():
-                pruned["flag"] = True
-                return True
-            return False
-
-        with tempfile.TemporaryDirectory(prefix="acrmdn-trial-") as tmp:
-            result = train(model_cfg, train_cfg, task, demos, checkpoint_path=Path(tmp) / "model.pt",
-                           resume=False, on_metrics=buffer.add, on_validation=on_validation)
+        watch = SeedValidation(trial, seeds, buffer)
+        try:
+            models, seconds, iterations = train_seeds(model_cfg, [c[1] for c in configs], task, demos, buffer, watch)
+        except PackPruned as pruned:
+            buffer.flush()
+            raise optuna.TrialPruned(f"pruned at iteration {pruned.iteration}") from None
         buffer.flush()
-        log_metrics(client, run_id, {"time/train_seconds": result.seconds})
-        if pruned["flag"]:
-            raise optuna.TrialPruned(f"pruned at iteration {result.iterations}")
+        log_metrics(client, run_id, {"time/train_seconds": seconds})
+        if watch.pruned:
+            raise optuna.TrialPruned(f"pruned at iteration {iterations}")
         if cfg.sweep.objective in ("final_distance", "failure_rate"):
-            ev = {**dataclasses.asdict(cfg.eval), "rollouts": cfg.sweep.eval_rollouts}
-            metrics, _ = evaluate_model(result.model, [cfg.sweep.task], ev, seed=seed, phi_mode=train_cfg.phi_mode,
-                                        timings=False)
-            log_metrics(client, run_id, metrics)
-            return task.sweep_objective(cfg.sweep.objective, metrics)  # the task knows its error metric
-        if "val" not in last:
-            raise RuntimeError("training reported no validation metric (train.val_every > train.iters?)")
-        return last["val"]
+            per_seed = evaluate_seeds(cfg, models, seeds, train_cfg, task, client, run_id)
+        else:
+            if len(watch.last) < len(seeds):
+                raise RuntimeError("training reported no validation metric (train.val_every > train.iters?)")
+            per_seed = [watch.last[k] for k in range(len(seeds))]
+        log_metrics(client, run_id, {f"objective/seed{s}": v for s, v in zip(seeds, per_seed, strict=True)})
+        return float(np.mean(per_seed))
 
     return objective
+
+
+class PackPruned(Exception):
+    """Raised from a packed training's validation callback: the trial is pruned, every seed stops."""
+
+    def __init__(self, iteration: int):
+        super().__init__(f"pruned at iteration {iteration}")
+        self.iteration = iteration
+
+
+class SeedValidation:
+    """The validation callback of a trial's seeds: keeps each seed's last value and, once every
+    seed has reported an iteration, reports their mean to the pruner."""
+
+    def __init__(self, trial, seeds: list[int], buffer: MetricBuffer):
+        self.trial, self.seeds, self.buffer = trial, seeds, buffer
+        self.last: dict[int, float] = {}
+        self.pending: dict[int, dict[int, float]] = {}
+        self.pruned = False
+
+    def __call__(self, k: int, iteration: int, value: float) -> bool:
+        self.last[k] = value
+        K = len(self.seeds)
+        if K > 1:
+            self.buffer.add(iteration, {f"seed{self.seeds[k]}/val/metric": value})
+        got = self.pending.setdefault(iteration, {})
+        got[k] = value
+        if len(got) < K:
+            return False
+        mean = float(np.mean(list(self.pending.pop(iteration).values())))
+        self.buffer.add(iteration, {"val/metric": mean})
+        if not math.isfinite(mean):
+            return False
+        self.trial.report(mean, iteration)
+        if not self.trial.should_prune():
+            return False
+        self.pruned = True
+        if K > 1:  # the callback stops one seed; a pruned trial stops them all at once
+            raise PackPruned(iteration)
+        return True
+
+
+def train_seeds(model_cfg, train_cfgs: list, task, demos, buffer: MetricBuffer,
+                watch: SeedValidation) -> tuple[list, float, int]:
+    """Train one model per train config (seed): `train` for one, `train_packed` for several;
+    (models, training seconds, iterations). A seed whose training diverged fails the trial."""
+    from stm.packed_train import train_packed
+    from stm.train import train
+
+    with tempfile.TemporaryDirectory(prefix="acrmdn-trial-") as tmp:
+        if len(train_cfgs) == 1:
+            result = train(model_cfg, train_cfgs[0], task, demos, checkpoint_path=Path(tmp) / "model.pt",
+                           resume=False, on_metrics=buffer.add,
+                           on_validation=lambda iteration, value: watch(0, iteration, value))
+            return [result.model], result.seconds, result.iterations
+        seeds = [c.seed for c in train_cfgs]
+
+        def on_metrics(k: int, iteration: int, metrics: dict[str, float]) -> None:
+            buffer.add(iteration, {f"seed{seeds[k]}/{name}": v for name, v in metrics.items()})
+
+        results = train_packed(model_cfg, train_cfgs, task, demos, resume=False,
+                               checkpoint_paths=[Path(tmp) / f"seed{s}.pt" for s in seeds],
+                               on_metrics=on_metrics, on_validation=watch)
+    for s, r in zip(seeds, results, strict=True):
+        if r.failure is not None:
+            raise RuntimeError(f"seed {s}: {r.failure}") from r.failure
+    return [r.model for r in results], max(r.seconds for r in results), max(r.iterations for r in results)
+
+
+def evaluate_seeds(cfg: StudyConfig, models: list, seeds: list[int], train_cfg, task, client: Client,
+                   run_id: str) -> list[float]:
+    """Each seed's evaluation objective, on that seed's own episodes (as an ablation evaluates a
+    cell: its dataset's options, its feedback); one seed's metrics are logged as they are, several
+    seeds' as seed<s>/<name> plus their mean under <name>."""
+    from experiments.evaluation import evaluate_model
+
+    ev = {**dataclasses.asdict(cfg.eval), "rollouts": cfg.sweep.eval_rollouts}
+    per_seed, logged = [], []
+    for model, seed in zip(models, seeds, strict=True):
+        metrics, _ = evaluate_model(model, [cfg.sweep.task], ev, seed=seed, phi_mode=train_cfg.phi_mode,
+                                    data=cfg.data_options(cfg.sweep.task), train_feedback=train_cfg.feedback,
+                                    temperature=train_cfg.temperature, timings=False)
+        per_seed.append(task.sweep_objective(cfg.sweep.objective, metrics))  # the task knows its error metric
+        logged.append(metrics)
+    if len(seeds) == 1:
+        log_metrics(client, run_id, logged[0])
+    else:
+        shared = set.intersection(*(set(m) for m in logged))
+        log_metrics(client, run_id, {**{f"seed{s}/{k}": v for s, m in zip(seeds, logged, strict=True)
+                                        for k, v in m.items()},
+                                     **{k: float(np.mean([m[k] for m in logged])) for k in sorted(shared)}})
+    return per_seed

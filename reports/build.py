@@ -80,7 +80,8 @@ def _sweep_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureRe
     tabs = [tables.generic_metrics_table(study)]
     figs = [_figure("sweep_history", lambda: sweeps.sweep_history(study, folder)),
             _figure("sweep_params", lambda: sweeps.sweep_params(study, folder)),
-            _figure("sweep_intermediate", lambda: sweeps.sweep_intermediate(study, folder))]
+            _figure("sweep_intermediate", lambda: sweeps.sweep_intermediate(study, folder)),
+            _figure("sweep_importance", lambda: sweeps.sweep_importance(study, folder))]
     return tabs, figs
 
 

@@ -25,7 +25,7 @@ Placeholders of the template:
     {{ circle_table }}       circle drawing radial errors beside the paper's
     {{ train_time_table }}   training wall time per variant and task
     {{ sweep_table("TASK") }}  the sweep study of TASK: trial counts, best trial (params, objective), top 5
-    {{ sweep_figure("TASK") }} its figures (sweep_history, sweep_params, sweep_intermediate);
+    {{ sweep_figure("TASK") }} its figures (sweep_history, sweep_params, sweep_intermediate, sweep_importance);
     {{ sweep_figure("TASK", "NAME") }} one of them
     {{ figure("NAME") }}     a figure of the ablation report (success_bars, circles, compute_time,
                              train_time, training_curves, tip_paths, changing_goal)

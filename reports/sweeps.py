@@ -1,5 +1,6 @@
 """An Optuna sweep tracked in MLflow: its figures (objective per trial, objective vs each sampled value,
-intermediate values, the pruning signal, per trial) and its table of the best trials."""
+intermediate values, the pruning signal, per trial; the parameter importances) and its table of the best
+trials (with each trial's per-seed objectives and the sweep's parameter importances)."""
 
 from __future__ import annotations
 
@@ -130,6 +131,53 @@ def sweep_intermediate(study: Study, folder: Path, metric: str = "val/metric") -
 
 
 
+IMPORTANCE = "metrics.importance/"
+
+
+def sweep_importances(study: Study) -> dict[str, float]:
+    """The parameter importances the sweep logged on its parent run (importance/<param>), largest first."""
+    found = {k.removeprefix(IMPORTANCE): float(v) for k, v in study.parent.items()
+             if k.startswith(IMPORTANCE) and v is not None and not (isinstance(v, float) and math.isnan(v))}
+    return dict(sorted(found.items(), key=lambda kv: -kv[1]))
+
+
+def _param_label(name: str) -> str:
+    return "(u, v)" if name == "uv" else name  # the grid's (u, v) pairs: one Optuna parameter
+
+
+def importance_note(study: Study) -> str:
+    """One line: the importances, or why there are none."""
+    imp = sweep_importances(study)
+    if imp:
+        evaluator = study.parent.get("tags.importance_evaluator") or "Optuna's default evaluator"
+        return (f"parameter importances ({evaluator} over the complete trials, normalised to sum 1): "
+                + ", ".join(f"{_param_label(k)} {num(v, 2)}" for k, v in imp.items()) + ".")
+    return str(study.parent.get("tags.importance_note")
+               or "parameter importances: none logged (a sweep from before they were, or one that did not finish).")
+
+
+def sweep_importance(study: Study, folder: Path) -> FigureResult:
+    name, title = "sweep_importance", "Sweep: parameter importances"
+    imp = sweep_importances(study)
+    if not imp:
+        return gap(name, title, importance_note(study))
+    fig, ax = plt.subplots(figsize=(5, 0.5 + 0.45 * len(imp)))
+    labels = [_param_label(k) for k in imp][::-1]
+    ax.barh(labels, list(imp.values())[::-1], color="tab:blue")
+    ax.set_xlim(0, 1)
+    ax.set_xlabel(f"importance ({study.parent.get('tags.importance_evaluator') or 'Optuna'}, sum 1)")
+    ax.set_title(f"{title} — {study.name}", fontsize=10)
+    ax.grid(axis="x", alpha=0.3)
+    return save(fig, folder, name, title)
+
+
+def _per_seed(row: pd.Series) -> str:
+    """A trial's per-seed objectives ("objective/seed<s>"), in seed order."""
+    cols = sorted((c for c in row.index if c.startswith("metrics.objective/seed") and pd.notna(row[c])),
+                  key=lambda c: int(c.rsplit("seed", 1)[1]))
+    return " / ".join(num(row[c], 3) for c in cols) or "–"
+
+
 # Public views of the helpers above, for the RESULTS.md tables (reports.results).
 def sweep_frame(study: Study) -> pd.DataFrame:
     """One row per trial, sorted by trial number: trial_no, trial_state (COMPLETE/PRUNED/FAIL), objective
@@ -164,8 +212,9 @@ def _fmt_param(v) -> str:
 
 
 def sweep_table(study: Study) -> Table:
-    """The sweep's best TOP_TRIALS complete trials (objective, sampled values), its trial counts by state and
-    its best trial as the parent run logged it."""
+    """The sweep's best TOP_TRIALS complete trials (every complete one of a grid), ranked: objective, per-seed
+    objectives (several seeds per trial), sampled values; its trial counts by state, its best trial as the
+    parent run logged it and its parameter importances."""
     df = sweep_frame(study)
     direction_ = direction(study)
     states = df["trial_state"].value_counts()
@@ -174,14 +223,22 @@ def sweep_table(study: Study) -> Table:
     params = [p for p in space if p in sampled] + sorted(p for p in sampled if p not in space)
     done = df[(df["trial_state"] == "COMPLETE") & df["objective"].notna()]
     done = done.assign(_key=done["objective"] if direction_ == "minimize" else -done["objective"])
-    top = done.sort_values(["_key", "trial_no"]).head(TOP_TRIALS)
-    rows = [[str(i + 1), str(r["trial_no"]), num(r["objective"], 4),
+    grid = study.parent.get("params.sweep.sampler") == "grid"  # every point of a grid: the grid is the result
+    top = done.sort_values(["_key", "trial_no"]).head(len(done) if grid else TOP_TRIALS)
+    seeds = int(float(study.parent.get("params.sweep.seeds") or 1))
+    per_seed = seeds > 1
+    rows = [[str(i + 1), str(r["trial_no"]), num(r["objective"], 4), *([_per_seed(r)] if per_seed else []),
              *(_fmt_param(r.get(f"params.trial.{p}")) for p in params)] for i, (_, r) in enumerate(top.iterrows())]
     if not rows:
-        rows = [[GAP, "–", "no complete trial with an objective", *("–" for _ in params)]]
+        rows = [[GAP, "–", "no complete trial with an objective", *(["–"] if per_seed else []),
+                 *("–" for _ in params)]]
     best_trial = study.parent.get("metrics.best_trial")
     best_value = study.parent.get("metrics.best_value")
     best_params = {p: study.parent.get(f"tags.best.{p}") for p in params}
+    best_row = df[df["trial_no"].astype(str) == str(int(float(best_trial)))] if best_trial is not None else df[:0]
+    for p in params:  # a value the parent did not tag (the grid's (u, v) pair): the best trial's own
+        if best_params[p] is None and len(best_row):
+            best_params[p] = best_row.iloc[0].get(f"params.trial.{p}")
     if best_value is None and len(top):  # a sweep that did not log its best on the parent
         r = top.iloc[0]
         best_trial, best_value = r["trial_no"], r["objective"]
@@ -198,6 +255,11 @@ def sweep_table(study: Study) -> Table:
              f"{study.parent.get('params.sweep.sampler') or '?'}; {objective_label(study)} ({direction_}d).",
              f"trials: {len(df)} (complete {counted['COMPLETE']}, pruned {counted['PRUNED']}, failed "
              f"{counted['FAIL']}, other {len(df) - sum(counted.values())}).",
-             best]
-    return Table(f"sweep_{sweep_task(study)}", f"Sweep on {sweep_task(study)}: top {TOP_TRIALS} trials",
-                 ["rank", "trial", "objective", *params], rows, notes)
+             best, importance_note(study)]
+    if per_seed:
+        first = int(float(study.parent.get("params.sweep.seed") or 0))
+        notes.insert(1, f"{seeds} training seeds per trial ({first}..{first + seeds - 1}); a trial's objective is "
+                        "the mean of its per-seed objectives (column 'per seed').")
+    title = f"all {len(top)} complete grid points" if grid else f"top {TOP_TRIALS} trials"
+    return Table(f"sweep_{sweep_task(study)}", f"Sweep on {sweep_task(study)}: {title}",
+                 ["rank", "trial", "objective", *(["per seed"] if per_seed else []), *params], rows, notes)

@@ -18,7 +18,7 @@ from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 
 FIXED = ("provenance", "command")
 WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2)}  # name -> (min, max) arguments
-SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate")
+SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 STUDY = "study"  # the keyword that picks an ablation-kind placeholder's study
 
 # Markdown, not HTML: nothing is escaped; the file keeps its final newline.

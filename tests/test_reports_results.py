@@ -122,7 +122,7 @@ def test_figures_are_small_pngs_behind_relative_links(rendered):
     assert "success_bars" not in unavailable and "figures/success_bars.png" in links
     assert "figures/reacher_sweep_history.png" in links
     assert "circles" in unavailable  # the smoke profile does not train the circle task: a visible gap line
-    assert len(links) + len(unavailable) == 6  # success_bars, circles, 3 sweep figures, training_curves
+    assert len(links) + len(unavailable) == 7  # success_bars, circles, 4 sweep figures, training_curves
     for link in links:
         assert not Path(link).is_absolute()
         path = docs / link

@@ -67,6 +67,7 @@ def test_journal_sweep_recovers_a_killed_sweeps_trial_and_runs_two_workers(tmp_p
     assert run.info.status == "FAILED" and run.data.tags["trial_state"] == "FAIL"
     new = [t for t in trials if t.number > stale.number]
     assert len(new) == 2 and len({t.user_attrs["worker"] for t in new}) == 2  # one trial in each process
+    assert new[0].params != new[1].params  # each process's sampler has its own seed (sweep.seed + worker)
     runs = _trial_runs(client)
     assert sorted(runs) == sorted(t.number for t in trials)  # one MLflow run per trial, none left RUNNING
     assert {r.info.status for n, r in runs.items() if n != stale.number} <= {"FINISHED", "KILLED"}
