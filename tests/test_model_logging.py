@@ -42,10 +42,16 @@ def _tiny_stm() -> STM:
     return STM(ModelConfig.from_dict({"hidden_size": 8, "num_layers": 1, "head": "mdn", "mixtures": 2}), task.layout)
 
 
-def test_model_is_logged_once_into_the_runs_experiment(store_run):
+def test_model_is_logged_once_into_the_runs_experiment(store_run, monkeypatch):
     client, run_id, exp = store_run
     model = _tiny_stm()
+    before = mlflow.get_tracking_uri()  # the working directory's default store: not the client's
     first = log_stm(model, client, run_id)
+    # the fluent API's URI is left as it was: not pinned to the client's store, nor to the resolved default
+    assert mlflow.get_tracking_uri() == before != client.tracking_uri
+    assert "MLFLOW_TRACKING_URI" not in os.environ
+    monkeypatch.chdir(client.tracking_uri.removeprefix("sqlite:///").rsplit("/", 1)[0])
+    assert mlflow.get_tracking_uri() != before  # still resolved per call (the default is relative)
     assert log_stm(model, client, run_id) == first  # a resumed cell does not log a second model
     models = client.search_logged_models([exp])
     assert [(m.model_id, m.name, m.source_run_id) for m in models] == [(first, MODEL_NAME, run_id)]
@@ -54,13 +60,9 @@ def test_model_is_logged_once_into_the_runs_experiment(store_run):
     outputs = client.get_run(run_id).outputs.model_outputs
     assert [o.model_id for o in outputs] == [first]
 
-    previous = mlflow.get_tracking_uri()
-    mlflow.set_tracking_uri(client.tracking_uri)
-    try:
-        loaded = mlflow.pytorch.load_model(f"runs:/{run_id}/{MODEL_NAME}")
-        local = Path(mlflow.artifacts.download_artifacts(f"models:/{first}"))
-    finally:
-        mlflow.set_tracking_uri(previous)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", client.tracking_uri)  # the fluent API's, for this test only
+    loaded = mlflow.pytorch.load_model(f"runs:/{run_id}/{MODEL_NAME}")
+    local = Path(mlflow.artifacts.download_artifacts(f"models:/{first}"))
     assert type(loaded) is STM
     for name, value in model.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], value), name
