@@ -1,4 +1,4 @@
-"""`python -m experiments {ablation,sweep,smoothing,idm,ui}`.
+"""`python -m experiments {ablation,sweep,smoothing,idm,milestones,ui}`.
 
 Exit codes: 0 success; 1 some cells/trials failed (summary printed); 2 bad configuration
 (one line naming the field and its allowed values, printed before anything is written);
@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     from experiments.postprocess import add_parsers
 
     add_parsers(sub)  # smoothing, idm
+    from experiments.milestones import add_parser as add_milestones
+
+    add_milestones(sub)
 
     ui = sub.add_parser("ui", help="MLflow UI on 127.0.0.1:5000 over the study store")
     ui.add_argument("--host", default="127.0.0.1")
@@ -111,6 +114,11 @@ def main(argv: list[str] | None = None) -> int:
         from experiments.postprocess import main as postprocess_main
 
         return postprocess_main(args)
+
+    if args.command == "milestones":
+        from experiments.milestones import main as milestones_main
+
+        return milestones_main(args)
 
     if args.command == "ui":
         from experiments.ui import serve

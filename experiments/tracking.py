@@ -35,8 +35,8 @@ KIND_TAG = "mlflow.experimentKind"
 # without this kind MLflow 3 opens an experiment in its GenAI layout (traces, prompts) instead of its runs
 EXPERIMENT_KIND = "custom_model_development"
 FAILED_STATUSES = ("FAILED", "KILLED")  # a cell or trial run that did not finish: a gap in a report
-ABLATION, SWEEP, SMOOTHING, IDM = "ablation", "sweep", "smoothing", "idm"
-STUDY_KINDS = (ABLATION, SWEEP, SMOOTHING, IDM)  # one MLflow experiment per study kind
+ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES = "ablation", "sweep", "smoothing", "idm", "milestones"
+STUDY_KINDS = (ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES)  # one MLflow experiment per study kind
 PACKAGES = ("torch", "numpy", "pybullet", "pytorch-kinematics", "mlflow", "optuna", "scipy", "acrmdn")
 _RETRY_MARKERS = ("database is locked", "database table is locked", "sqlite3.OperationalError", "disk I/O error")
 

@@ -1,0 +1,234 @@
+"""`python -m experiments milestones --study NAME`: success vs training iterations, measured on the
+copies of each cell's checkpoint that an ablation study kept (StudyConfig.keep_checkpoints: artifacts
+checkpoint_at/<iteration>/model.pt). The models are the study's own, so the curve costs evaluation only.
+
+Each (cell, kept iteration) is evaluated in physics exactly as the cell's final model is (its eval
+config, training seed, distinct episodes, feedback; `--rollouts` may lower the episode count and is
+then logged) and becomes a child run of the study "<study>-milestones" in the experiment
+"milestones": tags task, variant, seed, iteration, source_run; params the source cell's plus
+`milestone.*`; the metric keys of an ablation cell; its rollouts artifact. The cell's final
+iteration is not evaluated twice: a FINISHED cell's own evaluation is copied (tag copied = 1).
+A re-run evaluates only what is new, e.g. the milestones a still-running study kept since, so it
+can follow a study that trains across sessions."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from experiments.tracking import (
+    ABLATION,
+    MILESTONES,
+    PARENT_TAG,
+    Client,
+    child_runs,
+    find_parent_run,
+    get_or_create_experiment,
+    get_or_create_parent_run,
+    log_metrics,
+    log_params,
+    provenance_params,
+    set_tags,
+)
+from experiments.worker import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, setup_process
+
+log = logging.getLogger(__name__)
+
+
+class MilestoneError(Exception):
+    """A bad selection (unknown study, no kept checkpoints), reported as one line (exit code 2)."""
+
+
+@dataclass(frozen=True)
+class Milestone:
+    source_run: str
+    task: str
+    variant: str
+    seed: str
+    iteration: int
+    final: bool  # the source cell FINISHED at this iteration: its own evaluation is copied
+
+    @property
+    def key(self) -> str:
+        return f"{self.task}/{self.variant}/seed{self.seed}@{self.iteration}"
+
+
+def kept_iterations(client: Client, run_id: str) -> list[int]:
+    """Iterations whose checkpoint copy the run kept (artifact folders checkpoint_at/<iteration>)."""
+    out = []
+    for f in client.list_artifacts(run_id, KEPT_CHECKPOINT_DIR):
+        name = Path(f.path).name
+        if f.is_dir and name.isdigit():
+            out.append(int(name))
+    return sorted(out)
+
+
+def find_milestones(client: Client, study: str, tasks: list[str] | None, variants: list[str] | None
+                    ) -> list[Milestone]:
+    experiment = client.get_experiment_by_name(ABLATION)
+    parent = find_parent_run(client, experiment.experiment_id, study) if experiment else None
+    if parent is None:
+        raise MilestoneError(f"no ablation study named {study!r} in {client.uri}")
+    out = []
+    for run in child_runs(client, experiment.experiment_id, parent.info.run_id):
+        tags = run.data.tags
+        if (tasks and tags.get("task") not in tasks) or (variants and tags.get("variant") not in variants):
+            continue
+        done = int(run.data.metrics.get("train/iterations", -1)) if run.info.status == "FINISHED" else -1
+        out += [Milestone(run.info.run_id, tags["task"], tags["variant"], tags["seed"], it, final=it == done)
+                for it in kept_iterations(client, run.info.run_id)]
+    if not out:
+        raise MilestoneError(f"study {study!r} has no kept checkpoints (checkpoint_at/) for the selected cells; "
+                             "run it with keep_checkpoints = N in its profile or --set keep_checkpoints=N")
+    return sorted(out, key=lambda m: (m.task, m.variant, m.seed, m.iteration))
+
+
+def _source_config(client: Client, run_id: str, work: Path) -> dict[str, Any]:
+    local = client.download_artifacts(run_id, "config/config.json", str(work))
+    return json.loads(Path(local).read_text())
+
+
+def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None, level: int,
+                       threads: int | None) -> tuple[str, str]:
+    """Worker entry point: evaluate one kept checkpoint into its run; (status, error)."""
+    import numpy as np
+
+    from experiments.evaluation import evaluate_model, rollout_arrays
+    from stm.checkpoint import load_model
+
+    setup_process(level, threads)
+    client = Client(uri)
+    client.update_run(run_id, status="RUNNING")
+    try:
+        with tempfile.TemporaryDirectory(prefix="acrmdn-milestone-") as tmp:
+            work = Path(tmp)
+            cfg = _source_config(client, m.source_run, work / "config")
+            eval_cfg = dict(cfg["eval"], rollouts=rollouts or cfg["eval"]["rollouts"])
+            path = client.download_artifacts(m.source_run, f"{KEPT_CHECKPOINT_DIR}/{m.iteration}/{CHECKPOINT_NAME}",
+                                             str(work / "ckpt"))
+            train = cfg["train"]
+            start = time.perf_counter()
+            metrics, details = evaluate_model(load_model(Path(path)), list(cfg["eval_tasks"]), eval_cfg,
+                                              seed=int(cfg["seed"]), phi_mode=train.get("phi_mode"), timings=False,
+                                              data=cfg.get("data"), train_feedback=train.get("feedback"),
+                                              temperature=float(train.get("temperature", 1.0)))
+            metrics["time/evaluation_seconds"] = time.perf_counter() - start
+            log_metrics(client, run_id, metrics)
+            roll_dir = work / "rollouts"
+            roll_dir.mkdir()
+            for d in details:
+                np.savez_compressed(roll_dir / f"{d.task}.npz", **rollout_arrays(d))
+            client.log_artifacts(run_id, str(roll_dir), "rollouts")
+        client.set_terminated(run_id, "FINISHED")
+        return "FINISHED", ""
+    except KeyboardInterrupt:
+        client.set_terminated(run_id, "KILLED")
+        raise
+    except Exception as exc:  # one milestone's failure is its own; the others go on
+        text = f"{type(exc).__name__}: {exc}".splitlines()[0][:500]
+        log.error("milestone %s failed: %s", m.key, text)
+        set_tags(client, run_id, {"error": text})
+        client.set_terminated(run_id, "FAILED")
+        return "FAILED", text
+
+
+def _copy_final(client: Client, m: Milestone, run_id: str) -> None:
+    """The source cell's own evaluation of its final model (metrics and rollouts artifacts)."""
+    source = client.get_run(m.source_run)
+    keep = {k: v for k, v in source.data.metrics.items() if not k.startswith(("train/", "val/", "time/"))}
+    log_metrics(client, run_id, keep)
+    with tempfile.TemporaryDirectory(prefix="acrmdn-milestone-") as tmp:
+        local = client.download_artifacts(m.source_run, "rollouts", tmp)
+        client.log_artifacts(run_id, local, "rollouts")
+    set_tags(client, run_id, {"copied": 1})
+    client.set_terminated(run_id, "FINISHED")
+
+
+def prepare(client: Client, study: str, milestones: list[Milestone], rollouts: int | None
+            ) -> tuple[str, list[tuple[Milestone, str]], int]:
+    """The milestones study's parent run, (milestone, run id) still to evaluate, and how many are done."""
+    experiment_id = get_or_create_experiment(client, MILESTONES)
+    name = f"{study}-milestones"
+    parent_id = get_or_create_parent_run(client, experiment_id, name, {"kind": MILESTONES, "source_study": study})
+    log_params(client, parent_id, {"source_study": study, "rollouts": rollouts or "as the cells",
+                                   **provenance_params()})
+    existing = {(r.data.tags.get("source_run"), r.data.tags.get("iteration")): r
+                for r in child_runs(client, experiment_id, parent_id)}
+    todo, done = [], 0
+    for m in milestones:
+        run = existing.get((m.source_run, str(m.iteration)))
+        if run is not None and run.info.status == "FINISHED":
+            done += 1
+            continue
+        if run is None:
+            tags = {PARENT_TAG: parent_id, "task": m.task, "variant": m.variant, "seed": m.seed,
+                    "iteration": m.iteration, "source_run": m.source_run, "study_name": name, "role": "cell"}
+            run_id = client.create_run(experiment_id, run_name=m.key, tags={k: str(v) for k, v in tags.items()}
+                                       ).info.run_id
+            params = {k: v for k, v in client.get_run(m.source_run).data.params.items() if not k.startswith("claim.")}
+            log_params(client, run_id, {**params, "milestone.iteration": m.iteration,
+                                        "milestone.rollouts": rollouts or "as the cell"})
+        else:
+            run_id = run.info.run_id
+        todo.append((m, run_id))
+    return parent_id, todo, done
+
+
+def run_milestones(study: str, tasks: list[str] | None = None, variants: list[str] | None = None,
+                   rollouts: int | None = None, workers: int = 1, uri: str | None = None) -> dict[str, int]:
+    """Evaluate every kept checkpoint of the study not evaluated yet; counts by outcome."""
+    from experiments.procs import worker_pool
+
+    client = Client(uri)
+    milestones = find_milestones(client, study, tasks, variants)
+    parent_id, todo, done = prepare(client, study, milestones, rollouts)
+    counts = {"FINISHED": 0, "FAILED": 0, "skipped": done}
+    level = logging.getLogger().getEffectiveLevel()
+    log.info("study %r: %d kept checkpoints (%d to evaluate, %d done)", study, len(milestones), len(todo), done)
+    evaluate = [(m, r) for m, r in todo if not m.final]
+    for m, run_id in todo:
+        if m.final:  # the cell's own evaluation of this very model
+            _copy_final(client, m, run_id)
+            counts["FINISHED"] += 1
+    with worker_pool(max(1, workers)) as pool:
+        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, 1)) for m, r in evaluate]
+        for m, fut in futures:
+            status, error = fut.result()
+            counts[status] += 1
+            log.info("%s: %s %s", m.key, status, error)
+    client.set_terminated(parent_id, "FAILED" if counts["FAILED"] else "FINISHED")
+    return counts
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("milestones", help="success vs training iterations on the checkpoints an ablation kept")
+    p.add_argument("--study", required=True, help="the ablation study's name (its profile kept checkpoints)")
+    p.add_argument("--tasks", nargs="+", default=None, help="training tasks (default: all of the study's)")
+    p.add_argument("--variants", nargs="+", default=None, help="variants (default: all of the study's)")
+    p.add_argument("--rollouts", type=int, default=None, help="episodes per seed and task (default: the cell's)")
+    p.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
+    p.add_argument("-v", "--verbose", action="store_true")
+
+
+def _split(values: list[str] | None) -> list[str] | None:
+    return [v for item in values for v in item.split(",") if v] if values else None
+
+
+def main(args) -> int:
+    if args.rollouts is not None and args.rollouts < 1:
+        print(f"error: --rollouts must be >= 1, got {args.rollouts}", file=sys.stderr)
+        return 2
+    try:
+        counts = run_milestones(args.study, _split(args.tasks), _split(args.variants), args.rollouts, args.workers)
+    except MilestoneError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"milestones of {args.study!r}: {counts['FINISHED']} evaluated, {counts['skipped']} already done, "
+          f"{counts['FAILED']} failed")
+    return 1 if counts["FAILED"] else 0

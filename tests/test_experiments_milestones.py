@@ -1,0 +1,90 @@
+"""`python -m experiments milestones`: the checkpoints an ablation kept (keep_checkpoints) evaluated like its
+final models, as a tracked study; the final model's own evaluation copied, a re-run evaluates nothing twice,
+bad selections are one line with exit code 2; the report's success-vs-iterations figure draws from it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from cli_helpers import run_cli
+from mlflow.tracking import MlflowClient
+from PIL import Image
+
+SMALL = ["--set", "eval.rollouts=3", "--set", "eval.figures=0"]
+
+
+@pytest.fixture(scope="module")
+def kept_store(tmp_path_factory):
+    """A smoke study (10 iterations, 2 seeds of lstm) that kept its checkpoints at 5 and 10 iterations."""
+    store = tmp_path_factory.mktemp("kept")
+    proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
+                    "--set", "keep_checkpoints=5", "--study-name", "kept", *SMALL], store)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return store
+
+
+def _runs(client: MlflowClient, experiment: str) -> list:
+    exp = client.get_experiment_by_name(experiment)
+    return client.search_runs([exp.experiment_id], "tags.role = 'cell'") if exp else []
+
+
+@pytest.mark.slow
+def test_milestones_evaluate_each_kept_checkpoint_once(kept_store):
+    proc = run_cli(["milestones", "--study", "kept"], kept_store)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "4 evaluated, 0 already done, 0 failed" in proc.stdout
+    client = MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}")
+    cells = {r.info.run_id: r for r in _runs(client, "ablation")}
+    runs = _runs(client, "milestones")
+    assert sorted((r.data.tags["seed"], r.data.tags["iteration"]) for r in runs) == \
+        [("0", "10"), ("0", "5"), ("1", "10"), ("1", "5")]
+    for run in runs:
+        assert run.info.status == "FINISHED"
+        source = cells[run.data.tags["source_run"]]
+        assert run.data.params["train.lr"] == source.data.params["train.lr"]
+        assert run.data.params["milestone.iteration"] == run.data.tags["iteration"]
+        rollouts = client.download_artifacts(run.info.run_id, "rollouts/reacher.npz")
+        with np.load(rollouts) as z:  # the logged rate is the rate of the logged episodes
+            assert run.data.metrics["reacher/success_rate"] == pytest.approx(np.mean(z["success"]))
+            assert len(z["success"]) == 3 and set(z["seed"]) == {int(run.data.tags["seed"])}
+        if run.data.tags["iteration"] == "10":  # the cell's final model: its own evaluation, copied
+            assert run.data.tags.get("copied") == "1"
+            assert run.data.metrics["reacher/final_distance_mean"] == \
+                source.data.metrics["reacher/final_distance_mean"]
+        else:  # an intermediate model: other weights than the final one, so other rollouts
+            assert "copied" not in run.data.tags
+            assert run.data.metrics["reacher/final_distance_mean"] != \
+                source.data.metrics["reacher/final_distance_mean"]
+
+    again = run_cli(["milestones", "--study", "kept"], kept_store)
+    assert again.returncode == 0 and "0 evaluated, 4 already done" in again.stdout
+    assert len(_runs(client, "milestones")) == 4
+
+
+@pytest.mark.slow
+def test_success_vs_iterations_figure_draws_each_variant(kept_store, tmp_path):
+    from reports.milestones import milestone_cells, success_vs_iterations
+    from reports.store import Store
+
+    if not _runs(MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}"), "milestones"):
+        assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
+    study = Store(f"sqlite:///{kept_store / 'mlflow.db'}").studies("milestones", None)[0]
+    cells = milestone_cells(study)
+    assert sorted(set(cells["iteration"])) == [5, 10] and set(cells["seeds"]) == {2} and set(cells["n"]) == {6}
+    fig = success_vs_iterations(study, tmp_path)
+    assert fig.gap is None and [p.suffix for p in fig.paths] == [".png", ".pdf"]
+    with Image.open(fig.paths[0]) as im:  # lstm's line is drawn in its colour (tab10's first: 31, 119, 180)
+        pixels = np.asarray(im.convert("RGB")).reshape(-1, 3)
+    assert (np.abs(pixels.astype(int) - [31, 119, 180]).sum(axis=1) < 12).sum() > 50
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--study", "nope"], "no ablation study named 'nope'"),
+    (["--study", "kept", "--rollouts", "0"], "--rollouts must be >= 1"),
+    (["--study", "kept", "--variants", "ac-lstm"], "keep_checkpoints = N"),  # no such cell: none kept
+])
+def test_bad_selection_is_one_line_and_exit_2(kept_store, args, message):
+    proc = run_cli(["milestones", *args], kept_store)
+    assert proc.returncode == 2
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and message in lines[0], proc.stderr[-2000:]
