@@ -1,6 +1,6 @@
-"""RESULTS.md generation (reports.results, `python -m reports --results`) from a real smoke store: a smoke
-ablation and a small smoke sweep run with the experiments CLI into a temporary MLflow store, then the
-template rendered into a temporary folder (never reports/RESULTS.md)."""
+"""RESULTS.md generation (reports.results, `python -m reports --results`) from a real smoke store: the
+session's smoke ablation (conftest.py) and a small smoke sweep run with the experiments CLI into it, then
+the template rendered into a temporary folder (never reports/RESULTS.md)."""
 
 from __future__ import annotations
 
@@ -51,12 +51,11 @@ TODO
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    root = tmp_path_factory.mktemp("results_store")
-    for args in (["ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2"],
-                 ["sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2"]):
-        proc = _cli(args, root)
-        assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+def store(smoke_store):
+    """The session's smoke ablation (conftest.py), with a small smoke sweep added."""
+    root = smoke_store.path
+    proc = _cli(["sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2"], root)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     return root
 
 
@@ -105,7 +104,7 @@ def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
         assert paper_rate == f"{100 * paper.TABLE_I[variant]['reacher']:.0f}%"
         assert re.fullmatch(r"\d+%", rate) and re.fullmatch(r"\d+%", per_seed), cells  # smoke: one seed
         assert re.fullmatch(r"\d+–\d+%", wilson) and seed_aware == "–", cells  # one seed: no seed-level interval
-        assert (rollouts, seeds) == ("2", "1"), cells
+        assert (rollouts, seeds) == ("4", "1"), cells  # the smoke profile's 4 rollouts, one seed
     assert "### Circle drawing: radial error per radius" in text
     assert "### Training time per variant and task" in text
     # the sweep table: trial counts match the Optuna states logged on the trials, best = the parent's best
