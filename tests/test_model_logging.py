@@ -97,15 +97,13 @@ def _readme_snippet() -> str:
 
 
 @pytest.mark.slow
-def test_readme_snippet_rolls_out_a_trained_cell(tmp_path, monkeypatch):
+def test_readme_snippet_rolls_out_a_trained_cell(smoke_store, tmp_path):
+    """On the session's smoke ablation (conftest.py): the snippet reads ./mlflow.db of the folder it runs in."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    env.pop("MLFLOW_TRACKING_URI", None)  # the study writes ./mlflow.db, which the snippet reads
-    proc = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--variants",
-                           "ac-lstm-mdn", "--workers", "1"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    (cell,) = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.task = 'reacher'")
+    env.pop("MLFLOW_TRACKING_URI", None)
+    client = MlflowClient(smoke_store.uri)
+    (cell,) = client.search_runs([client.get_experiment_by_name("ablation").experiment_id],
+                                 "tags.task = 'reacher' and tags.variant = 'ac-lstm-mdn'")
     ckpt = torch.load(client.download_artifacts(cell.info.run_id, "checkpoint/model.pt", str(tmp_path)),
                       weights_only=False)
 
@@ -115,11 +113,11 @@ def test_readme_snippet_rolls_out_a_trained_cell(tmp_path, monkeypatch):
         import torch
         torch.save({"run_id": run.info.run_id, "model_type": type(model).__name__, "is_mdn": model.is_mdn,
                     "state": model.state_dict(), "q": rollout.q, "q0": q0, "metrics": metrics,
-                    "max_steps": task.max_steps}, "snippet_out.pt")
-    """)
+                    "max_steps": task.max_steps}, SNIPPET_OUT)
+    """).replace("SNIPPET_OUT", repr(str(tmp_path / "snippet_out.pt")))
     (tmp_path / "snippet.py").write_text(script)
-    ran = subprocess.run([sys.executable, "snippet.py"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                         timeout=600)
+    ran = subprocess.run([sys.executable, str(tmp_path / "snippet.py")], cwd=smoke_store.path, env=env,
+                         capture_output=True, text=True, timeout=600)
     assert ran.returncode == 0, ran.stderr[-3000:]
     assert "final distance" in ran.stdout
     out = torch.load(tmp_path / "snippet_out.pt", weights_only=False)
