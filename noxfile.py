@@ -116,7 +116,8 @@ def idm(session: nox.Session) -> None:
 
 @nox.session(venv_backend="none", requires=[APP])
 def report(session: nox.Session) -> None:
-    """Regenerate tables and figures from the tracking store."""
+    """Regenerate tables and figures from the tracking store (`-- --results`: RESULTS.md; `-- export` / `-- import`:
+    the study exports of reports/studies, see reports/export.py)."""
     _run_app(session, "-m", "reports")
 
 

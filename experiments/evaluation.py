@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -173,12 +174,27 @@ def _nan_rows(rows: list[np.ndarray | None], width: int = 3) -> np.ndarray:
     return out
 
 
+def _is_number(v: Any) -> bool:
+    return isinstance(v, numbers.Real | np.bool_)
+
+
+def result_arrays(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """Every per-episode numeric key of the task's evaluate (success, final_distance and the
+    task's own, e.g. mode_left, collided) as a (B,) float array, NaN where an episode lacks it;
+    success and final_distance always (NaN when the task has none)."""
+    keys = {"success", "final_distance"} | {k for r in results for k, v in r.items() if _is_number(v)}
+    return {k: np.array([float(r[k]) if _is_number(r.get(k)) else np.nan for r in results], dtype=float)
+            for k in sorted(keys)}
+
+
 def rollout_arrays(detail: TaskEvaluation, n_expert: int = 0) -> dict[str, np.ndarray]:
     """The `rollouts/<E>.npz` arrays of the reports contract, one row per rollout. `tip` is the
     forward kinematics of the commanded joint trajectory (the evaluation's physics does not return
     its measured path; position control tracks it closely). `seed` (the training seed),
     `episode_seed` and `episode` (index within the seed's episodes) identify each rollout, so a
-    report can resample seeds and episodes. `expert_tip` (tasks with a goal switch) for the first
+    report can resample seeds and episodes. Every per-episode numeric result of the task's
+    evaluate is a (B,) array of its own name (`result_arrays`); the fixed arrays above win a
+    clash of names. `expert_tip` (tasks with a goal switch) for the first
     n_expert episodes: the IK expert's direct path from the rollout's state at the switch."""
     from envs.kinematics import tip_position_np
     from envs.tasks import task_class
@@ -189,10 +205,9 @@ def rollout_arrays(detail: TaskEvaluation, n_expert: int = 0) -> dict[str, np.nd
     def vec(key: str) -> np.ndarray:
         return np.array([ep.info[key] if key in ep.info else [np.nan] * 3 for ep in eps], dtype=float)
 
-    out = {
+    out = result_arrays(res)
+    out.update({
         "tip": tip_position_np(detail.q),
-        "success": np.array([r.get("success", np.nan) for r in res], dtype=float),
-        "final_distance": np.array([r.get("final_distance", np.nan) for r in res], dtype=float),
         "goal": vec("goal"),
         "new_goal": vec("new_goal"),
         "switch_step": np.array([int(ep.info.get("switch_step", -1)) for ep in eps], dtype=int),
@@ -200,7 +215,7 @@ def rollout_arrays(detail: TaskEvaluation, n_expert: int = 0) -> dict[str, np.nd
         "seed": np.full(B, detail.seed, dtype=int),
         "episode_seed": np.full(B, detail.episode_seed, dtype=int),
         "episode": np.arange(B, dtype=int),
-    }
+    })
     if any("center" in ep.info for ep in eps):
         out["center"] = vec("center")
     if n_expert and any("switch_step" in ep.info for ep in eps):

@@ -70,7 +70,8 @@ def kept_iterations(client: Client, run_id: str) -> list[int]:
 
 
 def find_milestones(client: Client, study: str, tasks: list[str] | None, variants: list[str] | None
-                    ) -> list[Milestone]:
+                    ) -> tuple[list[Milestone], str]:
+    """The kept checkpoints of the study's selected cells, and the study's profile."""
     experiment = client.get_experiment_by_name(ABLATION)
     parent = find_parent_run(client, experiment.experiment_id, study) if experiment else None
     if parent is None:
@@ -86,7 +87,7 @@ def find_milestones(client: Client, study: str, tasks: list[str] | None, variant
     if not out:
         raise MilestoneError(f"study {study!r} has no kept checkpoints (checkpoint_at/) for the selected cells; "
                              "run it with keep_checkpoints = N in its profile or --set keep_checkpoints=N")
-    return sorted(out, key=lambda m: (m.task, m.variant, m.seed, m.iteration))
+    return sorted(out, key=lambda m: (m.task, m.variant, m.seed, m.iteration)), parent.data.tags.get("profile", "?")
 
 
 def _source_config(client: Client, run_id: str, work: Path) -> dict[str, Any]:
@@ -150,12 +151,13 @@ def _copy_final(client: Client, m: Milestone, run_id: str) -> None:
     client.set_terminated(run_id, "FINISHED")
 
 
-def prepare(client: Client, study: str, milestones: list[Milestone], rollouts: int | None
+def prepare(client: Client, study: str, profile: str, milestones: list[Milestone], rollouts: int | None
             ) -> tuple[str, list[tuple[Milestone, str]], int]:
     """The milestones study's parent run, (milestone, run id) still to evaluate, and how many are done."""
     experiment_id = get_or_create_experiment(client, MILESTONES)
     name = f"{study}-milestones"
-    parent_id = get_or_create_parent_run(client, experiment_id, name, {"kind": MILESTONES, "source_study": study})
+    parent_id = get_or_create_parent_run(client, experiment_id, name, {"kind": MILESTONES, "source_study": study,
+                                                                       "profile": profile})
     log_params(client, parent_id, {"source_study": study, "rollouts": rollouts or "as the cells",
                                    **provenance_params()})
     existing = {(r.data.tags.get("source_run"), r.data.tags.get("iteration")): r
@@ -185,9 +187,10 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
     """Evaluate every kept checkpoint of the study not evaluated yet; counts by outcome."""
     from experiments.procs import worker_pool
 
+    start = time.perf_counter()
     client = Client(uri)
-    milestones = find_milestones(client, study, tasks, variants)
-    parent_id, todo, done = prepare(client, study, milestones, rollouts)
+    milestones, profile = find_milestones(client, study, tasks, variants)
+    parent_id, todo, done = prepare(client, study, profile, milestones, rollouts)
     counts = {"FINISHED": 0, "FAILED": 0, "skipped": done}
     level = logging.getLogger().getEffectiveLevel()
     log.info("study %r: %d kept checkpoints (%d to evaluate, %d done)", study, len(milestones), len(todo), done)
@@ -202,6 +205,7 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
             status, error = fut.result()
             counts[status] += 1
             log.info("%s: %s %s", m.key, status, error)
+    client.log_metric(parent_id, "time/study_seconds", time.perf_counter() - start)
     client.set_terminated(parent_id, "FAILED" if counts["FAILED"] else "FINISHED")
     return counts
 

@@ -10,11 +10,15 @@ from pydantic import BeforeValidator, Field, ValidationInfo, field_validator
 from pydantic.dataclasses import dataclass
 
 from experiments.validation import as_tuple
-from stm.config import STRICT, Feedback, NonNegativeInt, PositiveInt
+from stm.config import STRICT, NonNegativeInt, PositiveInt
 
 Sampler = Literal["tpe", "grid", "random"]
 Objective = Literal["val", "final_distance", "failure_rate"]
 SweepParam = Literal["m", "u", "v", "feedback", "sigma_min"]
+# what a rollout may feed back (stm.rollout.FEEDBACKS): a model trains with a Feedback, and its rollouts may
+# also commit to one component per segment (segment_component, segment_track) or draw one per step
+RolloutFeedback = Literal["component_mean", "mixture_mean", "sample", "sample_component", "segment_component",
+                          "segment_track"]
 SAMPLERS: tuple[str, ...] = get_args(Sampler)
 OBJECTIVES: tuple[str, ...] = get_args(Objective)
 SWEEP_PARAMS: tuple[str, ...] = get_args(SweepParam)
@@ -29,7 +33,7 @@ class EvalConfig:
 
     rollouts: PositiveInt = 50  # evaluation episodes per evaluated task
     seed: int = 10_000  # episode seed; training seed s is evaluated on episodes of seed + s (same for every variant)
-    feedback: Feedback = "component_mean"  # fed back by an MDN in rollouts (one trained sampling samples)
+    feedback: RolloutFeedback = "component_mean"  # fed back by an MDN in rollouts (one trained sampling samples)
     # read by the circle task itself (envs.tasks.circle.Circle.eval_options); kept here so config hashes stay
     circle_radii: Radii = (0.05, 0.10, 0.15)  # m; the paper's evaluation radii
     circle_unseen_radii: Radii = (0.075, 0.125)  # m; radii absent from the demos

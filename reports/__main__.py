@@ -3,7 +3,11 @@ figure from the MLflow store alone (default: the latest study of each kind).
 
 `python -m reports --results [--ablation NAME_OR_RUN_ID] [--sweep NAME_OR_RUN_ID ...]`: regenerate
 reports/RESULTS.md (+ its small PNGs in reports/figures/) from reports/RESULTS.template.md and the store;
-`nox -s report -- --results` is the one command (see reports/results.py for the placeholders)."""
+`nox -s report -- --results` is the one command (see reports/results.py for the placeholders).
+`--results --exports reports/studies` builds it from the study exports in the repository instead of a store.
+
+`python -m reports export --study NAME_OR_RUN_ID [--out reports/studies]`: write a study's compact export
+(reports/export.py); `python -m reports import FOLDER [...]`: read exports into a store (reports/studyimport.py)."""
 
 from __future__ import annotations
 
@@ -41,13 +45,39 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     r.add_argument("--template", type=Path, default=Path("reports/RESULTS.template.md"))
     r.add_argument("--results-out", type=Path, default=Path("reports/RESULTS.md"))
     r.add_argument("--figures-dir", type=Path, default=Path("reports/figures"))
+    r.add_argument("--exports", type=Path, metavar="DIR", help="build from the study exports in DIR (e.g. "
+                   "reports/studies), imported into a temporary store, instead of --tracking-uri's store")
     args = p.parse_args(argv)
-    if not args.results and (args.ablation or args.sweep):
-        p.error("--ablation and --sweep select the studies of --results; add --results")
+    if not args.results and (args.ablation or args.sweep or args.exports):
+        p.error("--ablation, --sweep and --exports select the studies of --results; add --results")
+    if args.exports and args.tracking_uri:
+        p.error("--exports builds its own store: drop --tracking-uri")
     return args
 
 
+def parse_export_args(argv: list[str]) -> argparse.Namespace:
+    p = _Parser(prog="python -m reports export", description="Write a compact export of one study (its runs' "
+                "params, metrics, tags and the rollouts the reports read) to OUT/<study>/ (see reports/export.py).")
+    p.add_argument("--study", required=True, metavar="NAME_OR_RUN_ID", help="study_name or parent run id")
+    p.add_argument("--tracking-uri", help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)")
+    p.add_argument("--out", type=Path, default=Path("reports/studies"), help="root of the exports")
+    return p.parse_args(argv)
+
+
+def parse_import_args(argv: list[str]) -> argparse.Namespace:
+    p = _Parser(prog="python -m reports import", description="Recreate exported studies in an MLflow store (a "
+                "study already imported from the same export is skipped; see reports/studyimport.py).")
+    p.add_argument("exports", nargs="+", type=Path, help="export folders, or folders of them")
+    p.add_argument("--tracking-uri", help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)")
+    return p.parse_args(argv)
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in ("export", "import"):
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+        return export_main(parse_export_args(argv[1:])) if argv[0] == "export" else \
+            import_main(parse_import_args(argv[1:]))
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -88,18 +118,74 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _quiet_mlflow() -> None:
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)  # "Creating initial MLflow database tables"
+
+
+def _error(exc: Exception | str) -> int:
+    print(f"reports: error: {exc}", file=sys.stderr)
+    return 2
+
+
 def results_main(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from reports.export import ExportError
     from reports.results import ResultsError, write_results
+    from reports.store import Store, StoreError
+    from reports.studyimport import import_exports
+
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="reports-exports-") as tmp:
+        try:
+            uri = args.tracking_uri
+            if args.exports:
+                _quiet_mlflow()
+                uri = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
+                import_exports([args.exports], uri)
+            out = write_results(Store(uri), args.template, args.results_out, args.figures_dir, args.ablation,
+                                args.sweep, exports=args.exports)
+        except (StoreError, ResultsError, ExportError) as exc:
+            return _error(exc)
+    print(f"results: {out} (figures in {args.figures_dir}) [{time.perf_counter() - start:.1f} s]")
+    return 0
+
+
+def export_main(args: argparse.Namespace) -> int:
+    from reports.export import ExportError, export_study, size_text
     from reports.store import Store, StoreError
 
     start = time.perf_counter()
     try:
-        out = write_results(Store(args.tracking_uri), args.template, args.results_out, args.figures_dir,
-                            args.ablation, args.sweep)
-    except (StoreError, ResultsError) as exc:
-        print(f"reports: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"results: {out} (figures in {args.figures_dir}) [{time.perf_counter() - start:.1f} s]")
+        folder, doc, size = export_study(Store(args.tracking_uri), args.study, args.out)
+    except (StoreError, ExportError) as exc:
+        return _error(exc)
+    except OSError as exc:
+        return _error(f"cannot write the export under {args.out}: {exc.strerror or exc}")
+    if doc["runs"][0]["status"] != "FINISHED":
+        print(f"reports: warning: the study's parent run is {doc['runs'][0]['status']}: export it again once it "
+              "finished", file=sys.stderr)
+    n_art = sum(len(r["artifacts"]) for r in doc["runs"])
+    print(f"export: {folder} ({len(doc['runs'])} runs, {n_art} artifacts, {size_text(size)}) "
+          f"[{time.perf_counter() - start:.1f} s]")
+    return 0
+
+
+def import_main(args: argparse.Namespace) -> int:
+    from experiments.tracking import tracking_uri
+    from reports.export import ExportError
+    from reports.store import StoreError
+    from reports.studyimport import import_exports
+
+    uri = args.tracking_uri or tracking_uri()
+    _quiet_mlflow()
+    try:
+        done = import_exports(args.exports, uri)
+    except (StoreError, ExportError) as exc:
+        return _error(exc)
+    for folder, doc, new in done:
+        what = f"imported ({len(doc['runs'])} runs)" if new else "skipped (already imported from this export)"
+        print(f"import: {doc['study_name']!r} from {folder}: {what}")
     return 0
 
 

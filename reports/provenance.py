@@ -108,7 +108,7 @@ def provenance_table(studies: list[Study], success: Callable[[Study], pd.DataFra
     rows: list[tuple[str, Callable[[Study], str]]] = [
         ("kind", lambda s: s.kind),
         ("profile", lambda s: s.profile),
-        ("parent run", lambda s: f"`{s.run_id}`"),
+        ("parent run", lambda s: f"`{s.source_run_id}`"),
         ("git commit", _commits),
         ("machine", _machine),
         ("software", _software),

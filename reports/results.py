@@ -5,14 +5,17 @@ figure comes from the tracked studies (chosen by reports.selection).
 Regenerate with ONE command (from the repository root, over the store that holds the final studies):
 
     nox -s report -- --results                  # = python -m reports --results
+    nox -s report -- --results --exports reports/studies   # from the study exports in the repository
     python -m reports --results [--ablation NAME_OR_RUN_ID] [--sweep NAME_OR_RUN_ID ...]
         [--template reports/RESULTS.template.md] [--results-out reports/RESULTS.md]
-        [--figures-dir reports/figures] [--tracking-uri URI]
+        [--figures-dir reports/figures] [--tracking-uri URI | --exports DIR]
 
 Defaults: the latest ablation study of the store and every sweep study in it (the latest one per task).
-The command written into RESULTS.md ({{ command }}) pins the studies that were used, so it regenerates the
-same file later even when newer studies have been added to the store; it names the store relative to the
-working directory (a SQLite file) or by $MLFLOW_TRACKING_URI (a server), never by a path of this machine.
+With --exports, the store is a temporary one holding every export of DIR (reports.export, reports.studyimport):
+a session without the original store regenerates the same tables. The command written into RESULTS.md
+({{ command }}) pins the studies that were used, so it regenerates the same file later even when newer studies
+have been added to the store; it names the store relative to the working directory (a SQLite file, or the
+exports folder) or by $MLFLOW_TRACKING_URI (a server), never by a path of this machine.
 
 Placeholders of the template:
     {{ provenance }}         per study used: name, kind, profile, git commit, machine/software, seeds,
@@ -26,6 +29,12 @@ Placeholders of the template:
     {{ sweep_figure("TASK", "NAME") }} one of them
     {{ figure("NAME") }}     a figure of the ablation report (success_bars, circles, compute_time,
                              train_time, training_curves, tip_paths, changing_goal)
+    {{ success_table(study="NAME") }}, {{ figure("NAME", study="NAME") }}, ...: the same of another study
+                             (study_name or parent run id) than the --ablation one; provenance lists them all
+
+New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder(results, study) returning a
+Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
+{{ figure("name") }}).
 
 Figures are re-saved as small PNGs (reports.pngs) under --figures-dir and linked relative to --results-out.
 An unknown placeholder or a missing study or figure name is an error that names it (nothing is written); a
@@ -46,14 +55,16 @@ from pathlib import Path
 
 import pandas as pd
 
-from reports import figures, sweeps, tables, trajectories
+from envs.fileio import atomic_write_text
+from reports import figures, milestones, multimodal, sweeps, tables, trajectories
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
-from reports.selection import select_studies
+from reports.selection import Selection, select_studies
 from reports.store import DEFAULT_TRACKING_URI, Store, StoreError, Study
 from reports.sweeps import sweep_task
-from reports.template import ABLATION_KINDS, SWEEP_FIGURES, Placeholder, ResultsError, parse_template, render
+from reports.tables import Table
+from reports.template import SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
 
 log = logging.getLogger(__name__)
 
@@ -69,12 +80,15 @@ class Results:
     results_out: Path
     figures_dir: Path
     command: str
+    named: dict[str, Study] = field(default_factory=dict)  # study="NAME" of the template -> its study
     _cache: dict = field(default_factory=dict)
     _tmp: tempfile.TemporaryDirectory = field(
         default_factory=lambda: tempfile.TemporaryDirectory(prefix="results-"), repr=False)
 
     # ------------------------------------------------------------------ studies
     def need_ablation(self, ph: Placeholder) -> Study:
+        if ph.study is not None:
+            return self.named[ph.study]
         if self.ablation is None:
             raise ResultsError(f"{ph} needs an ablation study, and the store has none (run one, or pass --ablation)")
         return self.ablation
@@ -86,32 +100,36 @@ class Results:
             raise ResultsError(f"{ph}: no sweep study of task {ph.arg!r} selected (sweep studies: {have})")
         return hit[0]
 
-    def used(self, placeholders: list[Placeholder]) -> tuple[Study | None, list[Study]]:
-        """The studies the template refers to (all selected ones when it names none specifically)."""
-        abl = self.ablation if any(p.kind in ABLATION_KINDS for p in placeholders) else None
+    def used(self, placeholders: list[Placeholder]) -> tuple[Study | None, list[Study], list[Study]]:
+        """The default ablation study if the template uses it, the ablation studies it uses (in order) and the
+        sweep studies it uses (all selected ones when the template names none specifically)."""
+        abl = [self.need_ablation(p) for p in placeholders if is_ablation_kind(p.kind)]
+        default = self.ablation if any(is_ablation_kind(p.kind) and p.study is None for p in placeholders) else None
+        abl = list({s.run_id: s for s in abl}.values())
         swp = list(dict.fromkeys(self.sweep_of(p).run_id for p in placeholders if p.kind.startswith("sweep_")))
-        if abl is None and not swp:
-            return self.ablation, self.sweeps
-        return abl, [s for s in self.sweeps if s.run_id in swp]
+        if not abl and not swp:
+            return self.ablation, [self.ablation] if self.ablation else [], self.sweeps
+        return default, abl, [s for s in self.sweeps if s.run_id in swp]
 
     def check(self, placeholders: list[Placeholder]) -> None:
         """Every study the template needs is there, before anything is drawn or written."""
         for ph in placeholders:
-            if ph.kind in ABLATION_KINDS:
+            if is_ablation_kind(ph.kind):
                 self.need_ablation(ph)
             elif ph.kind.startswith("sweep_"):
                 self.sweep_of(ph)
 
     # ------------------------------------------------------------------- tables
-    def summary(self, name: str) -> pd.DataFrame:
-        if name not in self._cache:
+    def summary(self, name: str, study: Study) -> pd.DataFrame:
+        key = (name, study.run_id)
+        if key not in self._cache:
             build = {"success": tables.success_summary, "circle": tables.circle_summary,
                      "train": tables.train_time_summary}[name]
-            self._cache[name] = build(self.ablation)
-        return self._cache[name]
+            self._cache[key] = build(study)
+        return self._cache[key]
 
     def _success_of(self, study: Study) -> pd.DataFrame | None:
-        return self.summary("success") if study is self.ablation else None
+        return self.summary("success", study) if study.kind == "ablation" else None
 
     # ------------------------------------------------------------------ figures
     def figure(self, study: Study, name: str, out_name: str, build: Callable[[Path], FigureResult]) -> str:
@@ -137,7 +155,8 @@ class Results:
     def ablation_figure(self, ph: Placeholder) -> str:
         study = self.need_ablation(ph)
         build = ABLATION_FIGURES[ph.arg]
-        return self.figure(study, ph.arg, ph.arg, lambda folder: build(self, study, folder))
+        out_name = ph.arg if ph.study is None else f"{study.slug}_{ph.arg}"  # another study: its own file
+        return self.figure(study, ph.arg, out_name, lambda folder: build(self, study, folder))
 
     def sweep_figures(self, ph: Placeholder) -> str:
         study = self.sweep_of(ph)
@@ -149,16 +168,12 @@ class Results:
     # ------------------------------------------------------------------- render
     def render_one(self, ph: Placeholder, placeholders: list[Placeholder]) -> str:
         if ph.kind == "provenance":
-            abl, swp = self.used(placeholders)
-            return provenance_table([s for s in (abl, *swp) if s is not None], self._success_of).to_markdown()
+            _, abl, swp = self.used(placeholders)
+            return provenance_table([*abl, *swp], self._success_of).to_markdown()
         if ph.kind == "command":
             return f"```sh\n{self.command}\n```\n"
-        if ph.kind == "success_table":
-            return tables.success_table(self.summary("success"), self.need_ablation(ph)).to_markdown()
-        if ph.kind == "circle_table":
-            return tables.circle_table(self.summary("circle"), self.need_ablation(ph)).to_markdown()
-        if ph.kind == "train_time_table":
-            return tables.train_time_table(self.summary("train"), self.need_ablation(ph)).to_markdown()
+        if ph.kind in ABLATION_TABLES:
+            return markdown(ABLATION_TABLES[ph.kind](self, self.need_ablation(ph)))
         if ph.kind == "sweep_table":
             return sweeps.sweep_table(self.sweep_of(ph)).to_markdown()
         if ph.kind == "sweep_figure":
@@ -171,22 +186,47 @@ class Results:
         values: dict[Placeholder, str] = {}
         done: dict[tuple, str] = {}  # a placeholder used twice is drawn once
         for ph in placeholders:
-            key = (ph.kind, ph.args)
-            if key not in done:
-                done[key] = self.render_one(ph, placeholders).rstrip("\n")
-            values[ph] = done[key]
+            if ph.key not in done:
+                done[ph.key] = self.render_one(ph, placeholders).rstrip("\n")
+            values[ph] = done[ph.key]
         return render(template, values)
 
 
+def markdown(table: Table | pd.DataFrame) -> str:
+    if isinstance(table, Table):
+        return table.to_markdown()
+    return table.to_markdown(index=not isinstance(table.index, pd.RangeIndex)) + "\n"
+
+
+# The ablation-kind placeholders: {{ NAME }} / {{ NAME(study="...") }} and {{ figure("NAME"[, study="..."]) }}.
+ABLATION_TABLES: dict[str, Callable[[Results, Study], Table | pd.DataFrame]] = {
+    "success_table": lambda r, s: tables.success_table(r.summary("success", s), s),
+    "circle_table": lambda r, s: tables.circle_table(r.summary("circle", s), s),
+    "train_time_table": lambda r, s: tables.train_time_table(r.summary("train", s), s),
+    "budget_table": lambda r, s: tables.budget_table(s),
+    "multimodal_table": lambda r, s: multimodal.multimodal_table(s),
+}
 ABLATION_FIGURES: dict[str, Callable[[Results, Study, Path], FigureResult]] = {
-    "success_bars": lambda r, s, f: figures.success_bars(r.summary("success"), s, f),
+    "success_bars": lambda r, s, f: figures.success_bars(r.summary("success", s), s, f),
     "circles": lambda r, s, f: trajectories.circles(s, f),
     "compute_time": lambda r, s, f: figures.compute_time(s, f),
-    "train_time": lambda r, s, f: figures.train_time(r.summary("train"), s, f),
+    "train_time": lambda r, s, f: figures.train_time(r.summary("train", s), s, f),
     "training_curves": lambda r, s, f: figures.training_curves(s, f),
     "tip_paths": lambda r, s, f: trajectories.tip_paths(s, f),
     "changing_goal": lambda r, s, f: trajectories.changing_goal(s, f),
+    "mode_paths": lambda r, s, f: multimodal.mode_paths(s, f),
+    "success_vs_iterations": lambda r, s, f: milestones.success_vs_iterations(s, f),  # of a milestones study
 }
+
+
+def is_ablation_kind(kind: str) -> bool:
+    """A placeholder of an ablation study (the registries are read at call time: they may grow after import)."""
+    return kind == "figure" or kind in ABLATION_TABLES
+
+
+def parse_template(text: str) -> list[Placeholder]:
+    """reports.template.parse with this module's tables and figures."""
+    return parse(text, Vocabulary(ABLATION_TABLES, ABLATION_FIGURES))
 
 
 def portable_uri(uri: str | None, cwd: Path | None = None) -> str | None:
@@ -203,14 +243,20 @@ def portable_uri(uri: str | None, cwd: Path | None = None) -> str | None:
     return None if rel == DEFAULT_TRACKING_URI else rel
 
 
+def _portable_path(value: Path) -> str:
+    return Path(os.path.relpath(value)).as_posix() if Path(value).is_absolute() else Path(value).as_posix()
+
+
 def regeneration_command(ablation: Study | None, sweeps_used: list[Study], template: Path, results_out: Path,
-                         figures_dir: Path, tracking_uri: str | None) -> str:
+                         figures_dir: Path, tracking_uri: str | None, exports: Path | None = None) -> str:
     """`nox -s report -- --results ...` with the studies pinned by name (non-default paths and the store, in
-    portable_uri's form, kept)."""
+    portable_uri's form, or the exports folder, kept)."""
     args = ["nox", "-s", "report", "--", "--results"]
-    uri = portable_uri(tracking_uri)
+    uri = None if exports else portable_uri(tracking_uri)
     if uri:
         args += ["--tracking-uri", uri]
+    if exports:
+        args += ["--exports", _portable_path(exports)]
     if ablation is not None:
         args += ["--ablation", ablation.name]
     for s in sweeps_used:
@@ -218,34 +264,50 @@ def regeneration_command(ablation: Study | None, sweeps_used: list[Study], templ
     for flag, value, default in (("--template", template, DEFAULT_TEMPLATE), ("--results-out", results_out,
                                  DEFAULT_RESULTS), ("--figures-dir", figures_dir, DEFAULT_FIGURES)):
         if Path(value) != default:
-            args += [flag, Path(os.path.relpath(value)).as_posix() if Path(value).is_absolute() else str(value)]
+            args += [flag, _portable_path(value)]
     # the variable is meant to be expanded by the reader's shell: unquote it
     return shlex.join(args).replace("'$MLFLOW_TRACKING_URI'", '"$MLFLOW_TRACKING_URI"')
 
 
+NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milestones study: its runs are cells too)
+
+
+def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dict[str, Study]:
+    """The studies the template names (study="NAME"), each checked to be of a NAMED_KINDS kind in the store."""
+    named: dict[str, Study] = {}
+    for ph in placeholders:
+        if ph.study is not None and ph.study not in named:
+            try:
+                named[ph.study] = selection.pick(ph.study, NAMED_KINDS)
+            except StoreError as exc:
+                raise ResultsError(f"{ph}: {exc}") from None
+    return named
+
+
 def write_results(store: Store, template: Path, results_out: Path, figures_dir: Path,
-                  ablation: str | None = None, sweep_ids: list[str] | None = None) -> Path:
-    """Render the template from the store into results_out (written only once everything rendered)."""
+                  ablation: str | None = None, sweep_ids: list[str] | None = None,
+                  exports: Path | None = None) -> Path:
+    """Render the template from the store into results_out (written only once everything rendered); `exports`:
+    the folder the store was imported from (named in the regeneration command instead of the store)."""
     try:
         text = template.read_text()
     except OSError as exc:
         raise ResultsError(f"cannot read the template {template}: {exc.strerror or exc}") from None
     placeholders = parse_template(text)  # a template error before the store is read
-    abl, swp = select_studies(store, ablation, sweep_ids)
-    results = Results(abl, swp, results_out, figures_dir, command="")
+    selection = Selection(store)
+    abl, swp = select_studies(selection, ablation, sweep_ids)
+    results = Results(abl, swp, results_out, figures_dir, command="", named=_named_studies(selection, placeholders))
     results.check(placeholders)
-    used_abl, used_swp = results.used(placeholders)
-    results.command = regeneration_command(used_abl, used_swp, template, results_out, figures_dir, store.uri)
+    default, _, used_swp = results.used(placeholders)
+    results.command = regeneration_command(default, used_swp, template, results_out, figures_dir, store.uri,
+                                           exports)
     out = results.render(text)
     try:
-        results_out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = results_out.with_name(results_out.name + ".tmp")
-        tmp.write_text(out)
-        tmp.replace(results_out)
+        atomic_write_text(results_out, out)
     except OSError as exc:
         raise ResultsError(f"cannot write {results_out}: {exc.strerror or exc}") from None
     return results_out
 
 
-__all__ = ["MAX_FIGURE_WIDTH", "ResultsError", "StoreError", "parse_template", "portable_uri", "regeneration_command",
-           "select_studies", "small_png", "write_results", "Results"]
+__all__ = ["ABLATION_FIGURES", "ABLATION_TABLES", "MAX_FIGURE_WIDTH", "Results", "ResultsError", "StoreError",
+           "parse_template", "portable_uri", "regeneration_command", "select_studies", "small_png", "write_results"]

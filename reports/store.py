@@ -17,7 +17,9 @@ Child artifact `rollouts/<E>.npz` (np.savez_compressed; metres, robot base frame
     optional per episode: success (B,) 0/1 or NaN, final_distance (B,), goal (B, 3), new_goal (B, 3)
     (NaN if none), switch_step (B,) int (-1 if none), radius (B,) m, center (B, 3) m,
     ideal_tip (B, K, 3) ideal path (circle), expert_tip (B, Te+1, 3) the IK expert's direct path
-    (changing goal; NaN-padded rows at the end).
+    (changing goal; NaN-padded rows at the end); every other per-episode numeric result of the task's
+    evaluate as (B,) float under its own name, NaN where missing (e.g. multimodal tasks: mode_<name> 0/1 one per
+    mode, between 0/1, collided 0/1, lateral_offset m, posture_coordinate).
 Child artifact `rollouts/ik_timing.json`: {E: {"n_trajectories", "batch_size", "horizon",
     "stm_seconds_per_traj", "stm_batched_seconds_per_traj", "ik_seconds_per_traj",
     "ik_batched_seconds_per_traj"}}; absent -> the `time/*_seconds_per_traj` metrics of the run.
@@ -48,6 +50,7 @@ log = logging.getLogger(__name__)
 __all__ = ["DEFAULT_TRACKING_URI", "Store", "StoreError", "Study", "order_variants", "tracking_uri"]
 EVAL_METRIC = re.compile(r"^metrics\.(?P<task>[^/]+)/(?P<name>success_rate|success_ci_low|success_ci_high|"
                          r"n_rollouts|final_distance_mean)$")
+SOURCE_RUN_TAG = "export.run_id"  # an imported run's id in its original store (reports.studyimport)
 CIRCLE_METRIC = re.compile(r"^metrics\.circle/r(?P<r>\d+(?:\.\d+)?)/(?P<name>radial_rmse|max_radial_error_pct)$")
 
 
@@ -72,6 +75,11 @@ class Study:
     @property
     def run_id(self) -> str:
         return self.parent["run_id"]
+
+    @property
+    def source_run_id(self) -> str:
+        """The parent run's id in the store the study ran in (an imported study keeps it in a tag)."""
+        return self.parent.get(f"tags.{SOURCE_RUN_TAG}") or self.run_id
 
     @property
     def kind(self) -> str:
@@ -260,9 +268,8 @@ class Store:
             raise StoreError(f"cannot read the MLflow store at {self.uri}: {str(exc).splitlines()[0]}") from None
         return {e.name: e.experiment_id for e in exps}
 
-    def _runs(self, experiment_ids: list[str], filter_string: str = "") -> pd.DataFrame:
-        """The runs as one row each, columns named as mlflow.search_runs names them (run_id, status,
-        start_time, ..., metrics.X, params.X, tags.X), read through this store's own client."""
+    def search(self, experiment_ids: list[str], filter_string: str = "") -> list:
+        """Every matching run (mlflow Run objects), all pages."""
         runs, token = [], None
         while True:
             page = self.client.search_runs(experiment_ids, filter_string, max_results=5000, page_token=token)
@@ -270,7 +277,12 @@ class Store:
             token = page.token
             if not token:
                 break
-        return _runs_frame(runs)
+        return runs
+
+    def _runs(self, experiment_ids: list[str], filter_string: str = "") -> pd.DataFrame:
+        """The runs as one row each, columns named as mlflow.search_runs names them (run_id, status,
+        start_time, ..., metrics.X, params.X, tags.X), read through this store's own client."""
+        return _runs_frame(self.search(experiment_ids, filter_string))
 
     def parents(self, experiment: str | None = None) -> pd.DataFrame:
         """Parent runs (newest first) of one experiment or of all."""

@@ -250,3 +250,33 @@ def generic_metrics_table(study: Study) -> Table:
     return Table("metrics_table", "All logged metrics (final values)", ["metric", "task", "variant",
                                                                       "mean ± std", "runs"], rows,
                  ["Last logged value per run, over finished runs only."], agg)
+
+
+# ------------------------------------------------------------------------------------------- budget
+def _reached(run: dict) -> str:
+    """Iterations one run trained, with its status ("queued": created, never started)."""
+    if pd.isna(run.get("params.train.iters")):
+        return "0 (queued)"
+    done = run.get("metrics.train/iterations")
+    reached = done if run["status"] == "FINISHED" and not pd.isna(done) else run.get("tags.checkpoint_iteration")
+    return f"{0 if reached is None or pd.isna(reached) else int(float(reached)):,} ({run['status'].lower()})"
+
+
+def budget_table(study: Study) -> Table:
+    """Iterations each cell got: per (task, variant) the planned iterations (param train.iters) and each seed's
+    reached ones (metric train/iterations of a finished run, else the tag checkpoint_iteration of its last
+    checkpoint) with its status, so that the table of a study still training says how far each row is."""
+    kids = study.children
+    rows = []
+    for task in sorted(kids["task"].dropna().unique()):
+        for variant in study.variants:
+            group = kids[(kids["task"] == task) & (kids["variant"] == variant)].sort_values("seed")
+            if group.empty:
+                continue
+            planned = group["params.train.iters"].dropna().unique() if "params.train.iters" in group else []
+            rows.append([str(task), paper.variant_label(variant), ", ".join(f"{int(p):,}" for p in planned) or "–",
+                         " / ".join(_reached(r) for r in group.to_dict("records"))])
+    notes = ["reached: iterations trained per seed (seed 0 / 1 / ...) and the run's status; a running or killed run "
+             "resumes from its last checkpoint when the study's command is run again."]
+    return Table("budget_table", "Training iterations per cell", ["task", "variant", "planned", "reached per seed"],
+                 rows, notes)

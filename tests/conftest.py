@@ -11,6 +11,8 @@
   session (reacher's takes ~10 CPU-s), while no test sees another test's writes or damage.
 - `smoke_store`: one smoke ablation (`python -m experiments ablation --profile smoke`) built once
   per session through the CLI, for the tests that read a real study's store.
+- `results_store`: a smoke ablation (2 rollouts) and a 2-trial smoke sweep in one store, built once per
+  session, for the RESULTS.md and study export tests (read only).
 - Hypothesis: a derandomized profile without a database when CI is set.
 """
 
@@ -151,3 +153,16 @@ def smoke_store(tmp_path_factory: pytest.TempPathFactory) -> SmokeStore:
                           cwd=store, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     return SmokeStore(store, env["MLFLOW_TRACKING_URI"], proc.stdout)
+
+
+@pytest.fixture(scope="session")
+def results_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder whose mlflow.db holds a smoke ablation and a smoke sweep of reacher (built through the CLI)."""
+    store = tmp_path_factory.mktemp("results-store")
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
+    for args in (["ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2"],
+                 ["sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2"]):
+        proc = subprocess.run([sys.executable, "-m", "experiments", *args], cwd=store, env=env, capture_output=True,
+                              text=True, timeout=600)
+        assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    return store

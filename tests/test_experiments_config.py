@@ -310,3 +310,15 @@ def test_a_variant_that_contradicts_the_schedule_fails_with_the_config():
     with pytest.raises(ConfigError, match=r"^per_task.reacher.train.v: variant 'ac-lstm' "):
         load_profile("quick", ["per_task.reacher.train.v=0"], variants=["ac-lstm"])
     assert load_profile("smoke", ["train.v=0"], variants=["lstm"]).task_config("reacher").train.v == 0
+
+
+def test_eval_feedback_takes_every_rollout_feedback_and_train_feedback_only_the_trainable():
+    from typing import get_args
+
+    from experiments.sections import RolloutFeedback
+    from stm.rollout import FEEDBACKS
+
+    assert set(get_args(RolloutFeedback)) == set(FEEDBACKS)
+    assert load_profile("smoke", ["eval.feedback=segment_component"]).eval.feedback == "segment_component"
+    with pytest.raises(ConfigError, match=r"^train.feedback: 'segment_component' is not allowed"):
+        load_profile("smoke", ["train.feedback=segment_component"])

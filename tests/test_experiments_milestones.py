@@ -4,6 +4,8 @@ bad selections are one line with exit code 2; the report's success-vs-iterations
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from cli_helpers import run_cli
@@ -88,3 +90,20 @@ def test_bad_selection_is_one_line_and_exit_2(kept_store, args, message):
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1 and message in lines[0], proc.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_results_template_names_the_milestones_study(kept_store, tmp_path):
+    from reports.results import write_results
+    from reports.store import Store
+
+    if not _runs(MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}"), "milestones"):
+        assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
+    template = tmp_path / "t.md"
+    template.write_text('{{ budget_table(study="kept") }}\n'
+                        '{{ figure("success_vs_iterations", study="kept-milestones") }}\n')
+    out = write_results(Store(f"sqlite:///{kept_store / 'mlflow.db'}"), template, tmp_path / "R.md", tmp_path / "fig")
+    text = out.read_text()
+    assert "| reacher | LSTM | 10 | 10 (finished) / 10 (finished) |" in re.sub(" +", " ", text)
+    assert "](fig/kept-milestones_success_vs_iterations.png)" in text
+    assert (tmp_path / "fig" / "kept-milestones_success_vs_iterations.png").is_file()

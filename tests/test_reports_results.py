@@ -1,6 +1,6 @@
-"""RESULTS.md generation (reports.results, `python -m reports --results`) from a real smoke store: the
-session's smoke ablation (conftest.py) and a small smoke sweep run with the experiments CLI into it, then
-the template rendered into a temporary folder (never reports/RESULTS.md)."""
+"""RESULTS.md generation (reports.results, `python -m reports --results`) from a real smoke store: a smoke
+ablation and a small smoke sweep run with the experiments CLI into a temporary MLflow store, then the
+template rendered into a temporary folder (never reports/RESULTS.md)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import cli_env as _env
-from cli_helpers import run_cli as _cli
 from mlflow import MlflowClient
 from PIL import Image
 
@@ -51,12 +50,8 @@ TODO
 
 
 @pytest.fixture(scope="module")
-def store(smoke_store):
-    """The session's smoke ablation (conftest.py), with a small smoke sweep added."""
-    root = smoke_store.path
-    proc = _cli(["sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2"], root)
-    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
-    return root
+def store(results_store):
+    return results_store  # conftest: a smoke ablation and a smoke sweep, shared with tests/test_reports_export.py
 
 
 def _results(store: Path, out: Path, *args: str, template: str = TEMPLATE) -> subprocess.CompletedProcess:
@@ -104,7 +99,7 @@ def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
         assert paper_rate == f"{100 * paper.TABLE_I[variant]['reacher']:.0f}%"
         assert re.fullmatch(r"\d+%", rate) and re.fullmatch(r"\d+%", per_seed), cells  # smoke: one seed
         assert re.fullmatch(r"\d+–\d+%", wilson) and seed_aware == "–", cells  # one seed: no seed-level interval
-        assert (rollouts, seeds) == ("4", "1"), cells  # the smoke profile's 4 rollouts, one seed
+        assert (rollouts, seeds) == ("2", "1"), cells
     assert "### Circle drawing: radial error per radius" in text
     assert "### Training time per variant and task" in text
     # the sweep table: trial counts match the Optuna states logged on the trials, best = the parent's best
@@ -182,7 +177,10 @@ def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypa
     ('a\n{{ figure("no_such_figure") }}',
      'unknown figure \'no_such_figure\' in {{ figure("no_such_figure") }} (line 2)'),
     ('{{ sweep_table("pick-place") }}', "no sweep study of task 'pick-place'"),
-    ('{{ success_table("reacher") }}', "unknown placeholder call (line 1)"),
+    ('{{ success_table("reacher") }}', '{{ success_table("reacher") }} (line 1): success_table takes only study='),
+    ('{{ provenance(study="x") }}', "unknown placeholder call (line 1)"),
+    ('\n{{ sweep_table("reacher", study="x") }}', "sweep_table(...) (line 2) takes no keyword"),
+    ('{{ figure("circles", seed="1") }}', 'figure(...) (line 1) takes only study="NAME"'),
     ("{{ figure }}", "needs its argument"),
     ("{{figure:success_bars}}", "template syntax error (line 1)"),
 ])
@@ -209,6 +207,11 @@ def test_parse_template_and_command(tmp_path, monkeypatch):
     phs = parse_template('{{provenance}}\n\n{{ sweep_figure("pick-place", "sweep_params") }} {{figure("tip_paths")}}')
     assert [(p.kind, p.args, p.line) for p in phs] == [
         ("provenance", (), 1), ("sweep_figure", ("pick-place", "sweep_params"), 3), ("figure", ("tip_paths",), 3)]
+    phs = parse_template('{{ success_table(study="mm") }}\n{{ figure("tip_paths", study="mm") }}\n{{ circle_table }}')
+    assert [(p.kind, p.args, p.study, p.text) for p in phs] == [
+        ("success_table", (), "mm", '{{ success_table(study="mm") }}'),
+        ("figure", ("tip_paths",), "mm", '{{ figure("tip_paths", study="mm") }}'),
+        ("circle_table", (), None, "{{ circle_table }}")]
     with pytest.raises(ResultsError, match="sweep_table takes 1 argument"):
         parse_template('{{ sweep_table("reacher", "x") }}')
     cmd = regeneration_command(None, [], Path("reports/RESULTS.template.md"), Path("reports/RESULTS.md"),

@@ -5,26 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from multimodal_fixtures import task_fixtures
 
 from envs.kinematics import tip_position_np
-from envs.tasks import TASKS, get_task
+from envs.tasks import TASKS
 from envs.tasks.reacher import Reacher
 from envs.tasks.reacher_obstacle_multimodal import MODES, OBSTACLE_XY, classify
 
-
-@pytest.fixture(scope="module")
-def task():
-    return get_task("reacher-obstacle-multimodal", n_demos=16)
-
-
-@pytest.fixture(scope="module")
-def demos(task):
-    return task.demos(seed=3)
-
-
-@pytest.fixture(scope="module")
-def episodes(task):
-    return task.episodes(20, seed=7)
+task, demos, episodes = task_fixtures("reacher-obstacle-multimodal", n_demos=16)
 
 
 def test_registered_and_named_multimodal():
@@ -89,3 +77,35 @@ def test_classify_synthetic_paths():
     mode, offset = classify(line + bump, start, goal)
     assert mode == 1 and offset == pytest.approx(-0.15, abs=1e-3)
     assert classify(line[:10], start, goal)[0] == -1  # stopped before the pillar
+
+
+def test_the_detour_expert_solves_its_paths_as_the_reacher_solves_its_line(task, episodes, monkeypatch):
+    """The obstacle expert shares Reacher.solve_tip_paths: with no bump it is the reacher's expert."""
+    import envs.tasks.reacher_obstacle_multimodal as obstacle
+
+    eps = episodes[:3]
+    q0 = np.stack([ep.q0 for ep in eps])
+    goals = np.array([ep.info["goal"] for ep in eps])
+    monkeypatch.setattr(obstacle, "DETOUR", 0.0)
+    for got, want in zip(task.expert(q0, goals, np.array([0, 1, 0])), Reacher.expert(task, q0, goals), strict=True):
+        np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def test_rollout_arrays_carry_every_per_episode_result(task):
+    """The rollouts artifact keeps each episode's mode label (a figure colours paths by it)."""
+    from experiments.evaluation import TaskEvaluation, result_arrays, rollout_arrays
+
+    eps = task.episodes(3, seed=11)
+    q0 = np.stack([ep.q0 for ep in eps])
+    goals = np.array([ep.info["goal"] for ep in eps])
+    q, steps, _ = task.expert(q0, goals, np.array([0, 1, 0]), np.full(3, eps[0].horizon))
+    results = [task.evaluate(q[i], None, ep) for i, ep in enumerate(eps)]
+    arrays = rollout_arrays(TaskEvaluation(task.name, eps, q, results))
+    for key in ("success", "final_distance", "mode_left", "mode_right", "between", "collided", "lateral_offset"):
+        assert arrays[key].shape == (3,) and arrays[key].dtype == float
+        assert arrays[key].tolist() == [r[key] for r in results]
+    assert arrays["mode_left"].tolist() == [1.0, 0.0, 1.0] and arrays["mode_right"].tolist() == [0.0, 1.0, 0.0]
+    mixed = result_arrays([{"success": True, "note": "text", "x": 2}, {"final_distance": 0.1}])
+    assert sorted(mixed) == ["final_distance", "success", "x"]  # numbers only, NaN where missing
+    np.testing.assert_array_equal(mixed["success"], [1.0, np.nan])
+    np.testing.assert_array_equal(mixed["x"], [2.0, np.nan])

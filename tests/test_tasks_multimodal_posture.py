@@ -6,25 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from multimodal_fixtures import task_fixtures
 
 from envs.kinematics import default_kinematics, tip_position_np
-from envs.tasks import TASKS, get_task
+from envs.tasks import TASKS
 from envs.tasks.reacher_posture_multimodal import MODES, POSTURE_REFS, classify, nullspace_ik, posture_coordinate
 
-
-@pytest.fixture(scope="module")
-def task():
-    return get_task("reacher-posture-multimodal", n_demos=12)
-
-
-@pytest.fixture(scope="module")
-def demos(task):
-    return task.demos(seed=3)
-
-
-@pytest.fixture(scope="module")
-def episodes(task):
-    return task.episodes(20, seed=7)
+task, demos, episodes = task_fixtures("reacher-posture-multimodal", n_demos=12)
 
 
 def test_registered_and_named_multimodal():

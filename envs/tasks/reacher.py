@@ -142,8 +142,12 @@ class Reacher(Task):
         if steps is None:
             steps = self.steps_for(np.linalg.norm(goals - start, axis=-1))
         steps = np.asarray(steps, dtype=int)
-        length = int(steps.max())
-        path = line_paths(start, goals, steps, length)
+        return self.solve_tip_paths(q0, line_paths(start, goals, steps, int(steps.max())), steps)
+
+    def solve_tip_paths(self, q0: np.ndarray, path: np.ndarray, steps: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Tool-down joint paths along tip paths (B, max(steps)+1, 3) from q0 (B, 7), as `expert`
+        returns them: q (rows past steps[b] repeat row steps[b]), steps and ok."""
         q, converged, _ = solve_tool_down_path(path[:, 1:], q0)
         q = np.concatenate([q0[:, None], q], axis=1)
         for b in range(len(q)):

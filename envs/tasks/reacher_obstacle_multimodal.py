@@ -42,7 +42,7 @@ from envs.robot import LIMITS, NEUTRAL_Q
 from envs.sim import TABLE_TOP_Z, Scene
 from envs.tasks._bimodal import BimodalReacher
 from envs.tasks.base import Demos, Episode, register
-from envs.tasks.expert import check_trajectory, min_jerk, solve_tool_down_path, tool_down_at, velocity_ratio
+from envs.tasks.expert import check_trajectory, min_jerk, tool_down_at
 from envs.tasks.reacher import SUCCESS_RADIUS
 
 log = logging.getLogger(__name__)
@@ -187,13 +187,7 @@ class ReacherObstacleMultimodal(BimodalReacher):
         if steps is None:
             steps = self.steps_for(np.linalg.norm(goals - start, axis=-1))
         steps = np.asarray(steps, dtype=int)
-        path = self.detour_paths(start, goals, modes, steps, int(steps.max()))
-        q, converged, _ = solve_tool_down_path(path[:, 1:], q0)
-        q = np.concatenate([q0[:, None], q], axis=1)
-        for b in range(len(q)):
-            q[b, steps[b] + 1:] = q[b, steps[b]]
-        ok = converged & LIMITS.contains(q).all(axis=1) & (velocity_ratio(q, self.step_seconds) <= 1.0)
-        return q, steps, ok
+        return self.solve_tip_paths(q0, self.detour_paths(start, goals, modes, steps, int(steps.max())), steps)
 
     def replay(self, path: np.ndarray, goal: np.ndarray, mode: int) -> str:
         tip, touched = obstacle_scene().play(path, self.step_seconds)

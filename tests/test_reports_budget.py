@@ -1,0 +1,37 @@
+"""The training-budget table (reports.tables.budget_table): the iterations each cell got, from the runs' own
+params, metrics and checkpoint tags, for finished, still-training and queued runs."""
+
+from __future__ import annotations
+
+import shutil
+
+from mlflow.tracking import MlflowClient
+
+from experiments.tracking import PARENT_TAG
+from reports.store import Store
+from reports.tables import budget_table
+
+
+def test_budget_table_reports_each_seeds_iterations_and_status(smoke_store, tmp_path):
+    shutil.copy2(smoke_store.path / "mlflow.db", tmp_path / "mlflow.db")  # artifacts stay where they are
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name("ablation").experiment_id
+    cells = client.search_runs([exp], "tags.role = 'cell'")
+    parent = cells[0].data.tags[PARENT_TAG]
+    # a seed stopped after its checkpoint at iteration 5 (RUNNING, resumable), and a queued seed
+    stopped = client.create_run(exp, tags={PARENT_TAG: parent, "task": "reacher", "variant": "lstm", "seed": "7",
+                                           "role": "cell", "checkpoint_iteration": "5"})
+    client.log_param(stopped.info.run_id, "train.iters", "10")
+    client.create_run(exp, tags={PARENT_TAG: parent, "task": "reacher", "variant": "lstm", "seed": "8",
+                                 "role": "cell"})
+    study = Store(uri).studies("ablation", None)[0]
+    table = budget_table(study)
+    rows = {(r[0], r[1]): r for r in table.rows}
+    label = {"lstm": "LSTM", "ac-lstm": "a.c. LSTM", "lstm-mdn": "LSTM-MDN", "ac-lstm-mdn": "a.c. LSTM-MDN"}
+    for run in cells:
+        _, _, planned, reached = rows[run.data.tags["task"], label[run.data.tags["variant"]]]
+        assert planned == f"{int(run.data.params['train.iters']):,}"
+        assert f"{int(run.data.metrics['train/iterations']):,} (finished)" in reached
+    lstm = rows["reacher", "LSTM"][3].split(" / ")
+    assert lstm[-2:] == ["5 (running)", "0 (queued)"]  # seeds 7 and 8, after the finished ones in seed order
