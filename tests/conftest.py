@@ -146,7 +146,7 @@ class SmokeStore:
 def smoke_store(tmp_path_factory: pytest.TempPathFactory) -> SmokeStore:
     """`python -m experiments ablation --profile smoke --workers 2`, built once per session (under
     pytest-xdist: once per worker that runs a module using it; each worker's tests see only its own).
-    Shared: tests may add to it (a re-run, a sweep, a report logged to the parent run), never remove."""
+    Shared: tests may add to it (a re-run, a report logged to the parent run), never remove."""
     store = tmp_path_factory.mktemp("smoke-store")
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
     proc = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--workers", "2"],
