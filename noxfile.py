@@ -58,7 +58,8 @@ def app(session: nox.Session) -> None:
 def tests(session: nox.Session) -> None:
     """The test suite (benchmarks, integration and browser checks excluded). With no arguments:
     coverage, failing under the floor in pyproject.toml. `nox -s tests -- -m "not slow"`: the fast
-    lane (a -m here narrows the default one)."""
+    lane (a -m here narrows the default one). Both run on pytest-xdist (`-n auto --dist loadfile`)
+    unless the arguments choose (`-n 0`: one process)."""
     _install(session, "[dev]")
     args, marks = list(session.posargs), "not bench and not integration and not browser"
     if "-m" in args[:-1]:  # pytest keeps only the last -m: combine instead of replacing ours
@@ -66,7 +67,10 @@ def tests(session: nox.Session) -> None:
         marks = f"({marks}) and ({args.pop(i + 1)})"
         args.pop(i)
     cov = [] if session.posargs else ["--cov", "--cov-report=term"]
-    session.run("pytest", "-m", marks, *cov, *args)
+    # pytest-xdist, one worker a core; a module's tests share a worker (its module fixtures are built once)
+    xdist = [] if any(a.startswith(("-n", "--numprocesses", "--dist")) for a in args) else \
+        ["-n", "auto", "--dist", "loadfile"]
+    session.run("pytest", "-m", marks, *xdist, *cov, *args)
 
 
 @nox.session

@@ -12,6 +12,7 @@ pin it and its dependencies at the versions that trained the model. The resume c
 from __future__ import annotations
 
 import logging
+import os
 from contextlib import contextmanager
 from importlib import metadata
 
@@ -21,6 +22,8 @@ from mlflow.entities import LoggedModelStatus
 from experiments.tracking import with_retries
 
 log = logging.getLogger(__name__)
+
+TRACKING_URI_ENV = "MLFLOW_TRACKING_URI"
 
 MODEL_NAME = "model"
 # what a loaded model needs to import and run (the project and what stm/ and envs/ import)
@@ -84,21 +87,37 @@ def log_stm(model, client, run_id: str) -> str:
     created = client.create_logged_model(run.info.experiment_id, name=MODEL_NAME, source_run_id=run_id,
                                          params=dict(run.data.params), model_type="stm",
                                          tags={"mlflow.note.content": note})
-    previous = mlflow.get_tracking_uri()
-    mlflow.set_tracking_uri(client.tracking_uri)  # log_model reaches the store through the fluent API
-    try:
-        with _quiet(("mlflow.pytorch", "mlflow.models.model")):
-            # MLflow's own client inside log_model: retried like ours on SQLite lock contention
-            info = with_retries(mlflow.pytorch.log_model)(
-                model, name=MODEL_NAME, model_id=created.model_id, run_id=run_id, signature=signature,
-                input_example=x, pip_requirements=pinned_requirements(), serialization_format="pickle",
-                metadata={"class": f"{type(model).__module__}.{type(model).__qualname__}",
-                          "forward": "normalised states (B, T, D) -> head outputs (B, T, out), (h, c)",
-                          "rollout": "stm.rollout.generate(model, task, episodes)",
-                          "git_commit": run.data.params.get("git_commit", "")})  # the acrmdn code it needs
-    finally:
-        mlflow.set_tracking_uri(previous)
+    with _fluent_tracking_uri(client.tracking_uri), _quiet(("mlflow.pytorch", "mlflow.models.model")):
+        # MLflow's own client inside log_model: retried like ours on SQLite lock contention
+        info = with_retries(mlflow.pytorch.log_model)(
+            model, name=MODEL_NAME, model_id=created.model_id, run_id=run_id, signature=signature,
+            input_example=x, pip_requirements=pinned_requirements(), serialization_format="pickle",
+            metadata={"class": f"{type(model).__module__}.{type(model).__qualname__}",
+                      "forward": "normalised states (B, T, D) -> head outputs (B, T, out), (h, c)",
+                      "rollout": "stm.rollout.generate(model, task, episodes)",
+                      "git_commit": run.data.params.get("git_commit", "")})  # the acrmdn code it needs
     return info.model_id
+
+
+@contextmanager
+def _fluent_tracking_uri(uri: str):
+    """log_model reaches the store through the fluent API's process-wide URI: set it for the call,
+    then put back what was there before: the global as it was (unset unless someone had pinned it;
+    restoring the *resolved* URI would pin it) and MLFLOW_TRACKING_URI, which set_tracking_uri
+    also writes (later in-process code and subprocesses read it)."""
+    import mlflow
+    from mlflow.tracking._tracking_service import utils  # no public API tells a pinned URI from a resolved one
+
+    pinned, env = utils._tracking_uri, os.environ.get(TRACKING_URI_ENV)
+    mlflow.set_tracking_uri(uri)
+    try:
+        yield
+    finally:
+        mlflow.set_tracking_uri(pinned)  # None: unset, back to the environment variable or the default
+        if env is None:
+            os.environ.pop(TRACKING_URI_ENV, None)
+        else:
+            os.environ[TRACKING_URI_ENV] = env
 
 
 @contextmanager

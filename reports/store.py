@@ -139,12 +139,12 @@ class Study:
 
     def circle_metrics(self) -> pd.DataFrame:
         """Long frame: one row per (child run, radius) with radius_cm, radial_rmse, max_radial_error_pct."""
-        if "circle" not in self._frames:
+        if "per_radius" not in self._frames:
             df = _melt(self.children, CIRCLE_METRIC, "r", "radius_cm")
             if not df.empty:
                 df["radius_cm"] = df["radius_cm"].astype(float)
-            self._frames["circle"] = df
-        return self._frames["circle"]
+            self._frames["per_radius"] = df
+        return self._frames["per_radius"]
 
     def model_task_of(self, eval_task: str) -> str:
         """The training task whose runs evaluate `eval_task`: from the runs' metrics or `eval_tasks` tags, else

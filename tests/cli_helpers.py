@@ -4,11 +4,15 @@ plain functions (not fixtures) so that any test module can import them.
 A fault test sets ACRMDN_TEST_SIGNAL_FILE (and ACRMDN_TEST_HOLD=1) for the study it runs
 (see experiments/worker.py): every worker appends "<run_id> <iteration>" to that file once a
 checkpoint of its cell is in the store, then holds there, so the test kills or interrupts the
-study at a known point, never racing the training."""
+study at a known point, never racing the training. `stop_group`: how the fixtures that start
+servers (tests/integration, tests/browser) stop them: stdlib only, as the browser lane's small
+environment lacks the project's dependencies."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -63,8 +67,6 @@ def kill_at_checkpoints(args: list[str], store: Path, n: int, log: Path) -> tupl
     """Run `python -m experiments ARGS` in `store` with the fault hook on until `n` cells have
     signalled their first checkpoint, then SIGKILL its process group: their (run_id, iteration)
     and the command's return code."""
-    import signal
-
     with open(log, "w") as out:
         proc = subprocess.Popen([sys.executable, "-m", "experiments", *args], cwd=store,
                                 env=held_env(store, log.with_suffix(".signals")), stdout=out,
@@ -76,3 +78,16 @@ def kill_at_checkpoints(args: list[str], store: Path, n: int, log: Path) -> tupl
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
     return marks, proc.returncode
+
+
+def stop_group(proc: subprocess.Popen, grace: float = 30) -> None:
+    """Stop the process group of `proc` (started with start_new_session=True): SIGTERM, then
+    SIGKILL if it has not exited within `grace` s. A group already gone is fine."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        try:
+            proc.wait(timeout=grace if sig == signal.SIGTERM else None)
+            return
+        except subprocess.TimeoutExpired:
+            continue

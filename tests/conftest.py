@@ -42,17 +42,21 @@ try:  # hypothesis: reproducible in CI (same examples every run, no example data
 except ImportError:  # hypothesis is a dev extra; its tests skip themselves without it
     pass
 
-_SESSION: dict[str, Path] = {}
+_SESSION: dict = {}
+ROOT_KEY = "acrmdn_session_root"
 
 
 def pytest_configure(config: pytest.Config) -> None:
     """A throwaway home and dataset pool for the whole session, set before any test module (or
-    matplotlib) is imported, so session- and module-scoped fixtures are isolated too."""
-    root = Path(tempfile.mkdtemp(prefix="acrmdn-tests-"))
-    home, pool = root / "home", root / "dataset-pool"
+    matplotlib) is imported, so session- and module-scoped fixtures are isolated too. Under
+    pytest-xdist the workers share the controller's pool (each dataset generated once per run)
+    and have a home each."""
+    shared = getattr(config, "workerinput", {}).get(ROOT_KEY)  # an xdist worker: the controller's root
+    root = Path(shared) if shared else Path(tempfile.mkdtemp(prefix="acrmdn-tests-"))
+    home, pool = root / f"home-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}", root / "dataset-pool"
     for d in (home / ".cache", home / ".config" / "matplotlib", pool):
-        d.mkdir(parents=True)
-    _SESSION.update(root=root, home=home, pool=pool)
+        d.mkdir(parents=True, exist_ok=True)
+    _SESSION.update(root=root, home=home, pool=pool, owner=not shared)
     for key in [k for k in os.environ if k.startswith(SCRUBBED_PREFIXES)]:
         del os.environ[key]
     os.environ.update({"HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
@@ -60,8 +64,14 @@ def pytest_configure(config: pytest.Config) -> None:
                        "ACRMDN_CACHE": str(pool), "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg"})
 
 
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node) -> None:
+    """pytest-xdist (controller): hand the session's root to each worker it starts."""
+    node.workerinput[ROOT_KEY] = str(_SESSION["root"])
+
+
 def pytest_unconfigure(config: pytest.Config) -> None:
-    if "root" in _SESSION:
+    if _SESSION.get("owner"):
         shutil.rmtree(_SESSION["root"], ignore_errors=True)
 
 
@@ -117,10 +127,10 @@ def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
     known = _entries(pool)
     for stem, (npz, meta) in _entries(cache).items():
         if stem not in known and _valid(npz, meta):
-            shutil.copy2(npz, pool / f".{npz.name}.tmp")
-            os.replace(pool / f".{npz.name}.tmp", pool / npz.name)
-            shutil.copy2(meta, pool / f".{meta.name}.tmp")  # the json last: a half-copied entry is incomplete
-            os.replace(pool / f".{meta.name}.tmp", pool / meta.name)
+            for path in (npz, meta):  # the json last: a half-copied entry is incomplete
+                tmp = pool / f".{path.name}.{os.getpid()}.tmp"  # xdist workers may return the same entry at once
+                shutil.copy2(path, tmp)
+                os.replace(tmp, pool / path.name)
 
 
 @dataclass(frozen=True)
@@ -134,12 +144,13 @@ class SmokeStore:
 
 @pytest.fixture(scope="session")
 def smoke_store(tmp_path_factory: pytest.TempPathFactory) -> SmokeStore:
-    """`python -m experiments ablation --profile smoke --workers 2`, built once per session.
+    """`python -m experiments ablation --profile smoke --workers 2`, built once per session (under
+    pytest-xdist: once per worker that runs a module using it; each worker's tests see only its own).
     Shared: tests may add to it (a re-run, a report logged to the parent run), never remove."""
     store = tmp_path_factory.mktemp("smoke-store")
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
     proc = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--workers", "2"],
-                          cwd=store, env=env, capture_output=True, text=True, timeout=600)
+                          cwd=store, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     return SmokeStore(store, env["MLFLOW_TRACKING_URI"], proc.stdout)
 

@@ -192,13 +192,16 @@ def _cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     (["sweep", "--profile", "smoke", "--space", "m,lr"], "sweep.space"),
     (["sweep", "--profile", "smoke", "--set", "train.val_every=0"], "train.val_every"),
 ])
-@pytest.mark.slow
-def test_cli_rejects_bad_configs_with_exit_2_before_writing(tmp_path, args, field):
+def test_cli_rejects_bad_configs_with_exit_2_before_writing(tmp_path, args, field, monkeypatch, capsys):
+    """In this process (the command line's own start-up is checked below and in test_cli_codes.py)."""
+    from experiments.cli import main
+
     (tmp_path / "mlflow.db").write_bytes(b"")  # an existing (empty) store must stay untouched
     before = sorted(p.name for p in tmp_path.iterdir())
-    proc = _cli(args, tmp_path)
-    assert proc.returncode == 2, proc.stderr
-    err_lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    monkeypatch.chdir(tmp_path)
+    assert main(args) == 2
+    stderr = capsys.readouterr().err
+    err_lines = [ln for ln in stderr.splitlines() if ln.startswith("error:")]
     assert len(err_lines) == 1 and err_lines[0].startswith(f"error: {field}") and "allowed" in err_lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == before
     assert (tmp_path / "mlflow.db").read_bytes() == b""
@@ -234,15 +237,22 @@ def test_cell_keys_and_hashes_match_the_recorded_ones():
 
 
 @pytest.mark.slow
-def test_a_profile_file_that_does_not_parse_is_one_line_naming_the_file_and_line(tmp_path):
+def test_a_profile_file_that_does_not_parse_is_one_line_naming_the_file_and_line(tmp_path, monkeypatch, capsys):
     """Issue 19, 1: a TOML syntax error was a 30-line tomllib traceback and exit 1."""
     bad = tmp_path / "mine.toml"
     bad.write_text('tasks = ["reacher"]\nseeds = \n')
-    for command in ("ablation", "sweep", "smoothing", "idm"):
-        proc = _cli([command, "--profile", str(bad)], tmp_path)
-        assert proc.returncode == 2, proc.stderr
-        lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.startswith("pybullet build time")]
-        assert len(lines) == 1 and "mine.toml" in lines[0] and "line 2" in lines[0], proc.stderr
+    from experiments.cli import main
+
+    proc = _cli(["ablation", "--profile", str(bad)], tmp_path)  # the command line, from its start-up
+    assert proc.returncode == 2, proc.stderr
+    outputs = [proc.stderr]
+    monkeypatch.chdir(tmp_path)
+    for command in ("sweep", "smoothing", "idm"):  # the same path in this process: seconds less each
+        assert main([command, "--profile", str(bad)]) == 2
+        outputs.append(capsys.readouterr().err)
+    for err in outputs:
+        lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("pybullet build time")]
+        assert len(lines) == 1 and "mine.toml" in lines[0] and "line 2" in lines[0], err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.toml"]
 
 

@@ -42,10 +42,16 @@ def _tiny_stm() -> STM:
     return STM(ModelConfig.from_dict({"hidden_size": 8, "num_layers": 1, "head": "mdn", "mixtures": 2}), task.layout)
 
 
-def test_model_is_logged_once_into_the_runs_experiment(store_run):
+def test_model_is_logged_once_into_the_runs_experiment(store_run, monkeypatch):
     client, run_id, exp = store_run
     model = _tiny_stm()
+    before = mlflow.get_tracking_uri()  # the working directory's default store: not the client's
     first = log_stm(model, client, run_id)
+    # the fluent API's URI is left as it was: not pinned to the client's store, nor to the resolved default
+    assert mlflow.get_tracking_uri() == before != client.tracking_uri
+    assert "MLFLOW_TRACKING_URI" not in os.environ
+    monkeypatch.chdir(client.tracking_uri.removeprefix("sqlite:///").rsplit("/", 1)[0])
+    assert mlflow.get_tracking_uri() != before  # still resolved per call (the default is relative)
     assert log_stm(model, client, run_id) == first  # a resumed cell does not log a second model
     models = client.search_logged_models([exp])
     assert [(m.model_id, m.name, m.source_run_id) for m in models] == [(first, MODEL_NAME, run_id)]
@@ -54,13 +60,9 @@ def test_model_is_logged_once_into_the_runs_experiment(store_run):
     outputs = client.get_run(run_id).outputs.model_outputs
     assert [o.model_id for o in outputs] == [first]
 
-    previous = mlflow.get_tracking_uri()
-    mlflow.set_tracking_uri(client.tracking_uri)
-    try:
-        loaded = mlflow.pytorch.load_model(f"runs:/{run_id}/{MODEL_NAME}")
-        local = Path(mlflow.artifacts.download_artifacts(f"models:/{first}"))
-    finally:
-        mlflow.set_tracking_uri(previous)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", client.tracking_uri)  # the fluent API's, for this test only
+    loaded = mlflow.pytorch.load_model(f"runs:/{run_id}/{MODEL_NAME}")
+    local = Path(mlflow.artifacts.download_artifacts(f"models:/{first}"))
     assert type(loaded) is STM
     for name, value in model.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], value), name
@@ -95,15 +97,13 @@ def _readme_snippet() -> str:
 
 
 @pytest.mark.slow
-def test_readme_snippet_rolls_out_a_trained_cell(tmp_path, monkeypatch):
+def test_readme_snippet_rolls_out_a_trained_cell(smoke_store, tmp_path):
+    """On the session's smoke ablation (conftest.py): the snippet reads ./mlflow.db of the folder it runs in."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    env.pop("MLFLOW_TRACKING_URI", None)  # the study writes ./mlflow.db, which the snippet reads
-    proc = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--variants",
-                           "ac-lstm-mdn", "--workers", "1"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    (cell,) = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.task = 'reacher'")
+    env.pop("MLFLOW_TRACKING_URI", None)
+    client = MlflowClient(smoke_store.uri)
+    (cell,) = client.search_runs([client.get_experiment_by_name("ablation").experiment_id],
+                                 "tags.task = 'reacher' and tags.variant = 'ac-lstm-mdn'")
     ckpt = torch.load(client.download_artifacts(cell.info.run_id, "checkpoint/model.pt", str(tmp_path)),
                       weights_only=False)
 
@@ -113,11 +113,11 @@ def test_readme_snippet_rolls_out_a_trained_cell(tmp_path, monkeypatch):
         import torch
         torch.save({"run_id": run.info.run_id, "model_type": type(model).__name__, "is_mdn": model.is_mdn,
                     "state": model.state_dict(), "q": rollout.q, "q0": q0, "metrics": metrics,
-                    "max_steps": task.max_steps}, "snippet_out.pt")
-    """)
+                    "max_steps": task.max_steps}, SNIPPET_OUT)
+    """).replace("SNIPPET_OUT", repr(str(tmp_path / "snippet_out.pt")))
     (tmp_path / "snippet.py").write_text(script)
-    ran = subprocess.run([sys.executable, "snippet.py"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                         timeout=600)
+    ran = subprocess.run([sys.executable, str(tmp_path / "snippet.py")], cwd=smoke_store.path, env=env,
+                         capture_output=True, text=True, timeout=600)
     assert ran.returncode == 0, ran.stderr[-3000:]
     assert "final distance" in ran.stdout
     out = torch.load(tmp_path / "snippet_out.pt", weights_only=False)

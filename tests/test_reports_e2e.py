@@ -1,4 +1,5 @@
-"""End to end: a real smoke ablation (experiments CLI) into a temporary store, then `python -m reports` on it."""
+"""End to end: `python -m reports` on a real smoke ablation (the session's, built by the experiments CLI:
+conftest.py)."""
 
 from __future__ import annotations
 
@@ -15,15 +16,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-def test_smoke_ablation_report(tmp_path):
-    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
-           "PYTHONPATH": str(ROOT)}
-    ablation = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--workers",
-                               "1", "--set", "eval.rollouts=2"],
-                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
-    assert ablation.returncode == 0, ablation.stderr[-2000:]
+def test_smoke_ablation_report(smoke_store, tmp_path):
+    env = {**os.environ, "MLFLOW_TRACKING_URI": smoke_store.uri, "PYTHONPATH": str(ROOT)}
     out = tmp_path / "out"
-    report = subprocess.run([sys.executable, "-m", "reports", "--out", str(out)], cwd=tmp_path, env=env,
+    report = subprocess.run([sys.executable, "-m", "reports", "--out", str(out)], cwd=smoke_store.path, env=env,
                             capture_output=True, text=True, timeout=300)
     assert report.returncode == 0, report.stderr[-2000:]
 

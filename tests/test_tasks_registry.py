@@ -147,12 +147,6 @@ def test_evaluation_tasks_take_the_trained_tasks_options_they_accept():
     assert circle.eval_radii == (0.05,) and circle.radii == task_class("circle")().radii
 
 
-# Comparisons that branch on a task's name in another package's files still to be switched to the Task API
-# (owned by another branch at the time of writing: sweep.py's objective -> Task.sweep_objective; store.py's
-# circle frame key). Remove an entry once its file asks the task.
-PENDING_NAME_BRANCHES = {("reports/store.py", "'circle' not in self._frames")}
-
-
 def test_no_package_outside_envs_compares_a_task_name():
     root = TASKS_DIR.parent.parent
     found = set()
@@ -163,4 +157,4 @@ def test_no_package_outside_envs_compares_a_task_name():
                     consts = {n.value for n in ast.walk(node) if isinstance(n, ast.Constant)}
                     if consts & set(TASKS):
                         found.add((str(path.relative_to(root)), ast.unparse(node)))
-    assert found <= PENDING_NAME_BRANCHES, sorted(found - PENDING_NAME_BRANCHES)
+    assert not found, sorted(found)

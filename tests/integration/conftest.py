@@ -12,7 +12,6 @@ from __future__ import annotations
 import glob
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -24,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from cli_helpers import stop_group
 
 PG_USER = "postgres"
 
@@ -118,13 +118,7 @@ def mlflow_server(postgres: Postgres) -> Iterator[MlflowServer]:
             time.sleep(0.5)
         yield MlflowServer(url, proc)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        stop_group(proc)
         log.close()
         shutil.rmtree(artifacts, ignore_errors=True)
         Path(log.name).unlink(missing_ok=True)

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cli_helpers import HOLD_ENV, SIGNAL_FILE_ENV, wait_for_signals
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.integration
@@ -121,24 +122,18 @@ def test_ablation_workers_share_a_cell_queue_and_one_is_killed(postgres, mlflow_
             "--set", "train.iters=150", "--set", "train.val_every=0", "--set", "eval.figures=0",
             "--set", "eval.rollouts=2", "--set", "sweep.heartbeat=1", "--set", "sweep.grace_period=4"]
     client = MlflowClient(mlflow_server.url)
+    signals = tmp_path / "signals"
+    # both join at once; the victim holds at its cell's first checkpoint (experiments/worker.py's test
+    # hook) and is killed there, holding the cell
     survivor = _worker(args, tmp_path, env, tmp_path / "a.log")
-    victim = _worker(args, tmp_path, env, tmp_path / "b.log")
-    killed = None
+    victim = _worker(args, tmp_path, {**env, SIGNAL_FILE_ENV: str(signals), HOLD_ENV: "1"}, tmp_path / "b.log")
     try:
-        deadline = time.monotonic() + 300
-        while killed is None and time.monotonic() < deadline and victim.poll() is None:
-            time.sleep(0.3)
-            exp = client.get_experiment_by_name("ablation")
-            if exp is None:
-                continue
-            for run in client.search_runs([exp.experiment_id], "tags.role = 'cell'"):
-                if run.data.tags.get("worker", "").endswith(f":{victim.pid}") and \
-                        int(run.data.tags.get("checkpoint_iteration", 0)) >= 5:
-                    os.killpg(victim.pid, signal.SIGKILL)
-                    killed = run
-                    break
-        assert killed is not None, (tmp_path / "b.log").read_text()[-3000:]
+        (run_id, iteration), = wait_for_signals(signals, 1, victim, timeout=300, log=tmp_path / "b.log")
+        os.killpg(victim.pid, signal.SIGKILL)
         victim.wait()
+        killed = client.get_run(run_id)
+        assert killed.info.status == "RUNNING" and killed.data.tags["checkpoint_iteration"] == str(iteration)
+        assert killed.data.tags["worker"].endswith(f":{victim.pid}")
         assert survivor.wait(timeout=400) == 0, (tmp_path / "a.log").read_text()[-4000:]
     finally:
         _stop(victim)
