@@ -56,7 +56,7 @@ from pathlib import Path
 import pandas as pd
 
 from envs.fileio import atomic_write_text
-from reports import figures, milestones, multimodal, sweeps, tables, trajectories
+from reports import figures, milestones, multimodal, paper, sweeps, tables, trajectories
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
@@ -192,19 +192,22 @@ class Results:
         return render(template, values)
 
 
-def markdown(table: Table | pd.DataFrame) -> str:
+def markdown(table: Table | pd.DataFrame | str) -> str:
+    if isinstance(table, str):  # a builder that renders its own Markdown
+        return table
     if isinstance(table, Table):
         return table.to_markdown()
     return table.to_markdown(index=not isinstance(table.index, pd.RangeIndex)) + "\n"
 
 
 # The ablation-kind placeholders: {{ NAME }} / {{ NAME(study="...") }} and {{ figure("NAME"[, study="..."]) }}.
-ABLATION_TABLES: dict[str, Callable[[Results, Study], Table | pd.DataFrame]] = {
+ABLATION_TABLES: dict[str, Callable[[Results, Study], Table | pd.DataFrame | str]] = {
     "success_table": lambda r, s: tables.success_table(r.summary("success", s), s),
     "circle_table": lambda r, s: tables.circle_table(r.summary("circle", s), s),
     "train_time_table": lambda r, s: tables.train_time_table(r.summary("train", s), s),
     "budget_table": lambda r, s: tables.budget_table(s),
-    "multimodal_table": lambda r, s: multimodal.multimodal_table(s),
+    "multimodal_table": lambda r, s: multimodal.multimodal_markdown(multimodal.multimodal_table(s),
+                                                                    paper.variant_label),
 }
 ABLATION_FIGURES: dict[str, Callable[[Results, Study, Path], FigureResult]] = {
     "success_bars": lambda r, s, f: figures.success_bars(r.summary("success", s), s, f),

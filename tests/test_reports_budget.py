@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 
+import pytest
 from mlflow.tracking import MlflowClient
 
 from experiments.tracking import PARENT_TAG
@@ -12,6 +13,7 @@ from reports.store import Store
 from reports.tables import budget_table
 
 
+@pytest.mark.slow
 def test_budget_table_reports_each_seeds_iterations_and_status(smoke_store, tmp_path):
     shutil.copy2(smoke_store.path / "mlflow.db", tmp_path / "mlflow.db")  # artifacts stay where they are
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
