@@ -230,5 +230,5 @@ def test_parse_template_and_command(tmp_path, monkeypatch):
 def test_repository_template_parses():
     phs = parse_template((REPO / "reports" / "RESULTS.template.md").read_text())
     kinds = {(p.kind, p.arg) for p in phs}
-    assert {("provenance", None), ("command", None), ("success_table", None), ("circle_table", None),
-            ("train_time_table", None), ("sweep_table", "reacher"), ("sweep_table", "pick-place")} <= kinds
+    assert {("provenance", None), ("command", None), ("budget_table", None), ("success_table", None),
+            ("multimodal_table", None), ("train_time_table", None), ("figure", "mode_paths")} <= kinds
