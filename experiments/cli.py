@@ -118,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "milestones":
         from experiments.milestones import main as milestones_main
 
+        args.tasks, args.variants = _split(args.tasks), _split(args.variants)
         return milestones_main(args)
 
     if args.command == "ui":

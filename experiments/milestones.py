@@ -220,16 +220,13 @@ def add_parser(sub) -> None:
     p.add_argument("-v", "--verbose", action="store_true")
 
 
-def _split(values: list[str] | None) -> list[str] | None:
-    return [v for item in values for v in item.split(",") if v] if values else None
-
-
 def main(args) -> int:
+    """args.tasks / args.variants: lists, already split at commas (experiments.cli)."""
     if args.rollouts is not None and args.rollouts < 1:
         print(f"error: --rollouts must be >= 1, got {args.rollouts}", file=sys.stderr)
         return 2
     try:
-        counts = run_milestones(args.study, _split(args.tasks), _split(args.variants), args.rollouts, args.workers)
+        counts = run_milestones(args.study, args.tasks, args.variants, args.rollouts, args.workers)
     except MilestoneError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
