@@ -13,6 +13,9 @@
   per session through the CLI, for the tests that read a real study's store.
 - `results_store`: a smoke ablation (2 rollouts) and a 2-trial smoke sweep in one store, built once per
   session, for the RESULTS.md and study export tests (read only).
+- One intra-op thread per test process and per subprocess (OMP_NUM_THREADS=1), as the CLI gives each
+  worker: pytest-xdist runs a process per core, and two threads each on busy cores spin at barriers
+  (a smoke cell measured 68 s with 2 threads on a loaded 2-core machine, 24 s with 1).
 - Hypothesis: a derandomized profile without a database when CI is set.
 """
 
@@ -61,7 +64,10 @@ def pytest_configure(config: pytest.Config) -> None:
         del os.environ[key]
     os.environ.update({"HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
                        "XDG_CONFIG_HOME": str(home / ".config"), "MPLCONFIGDIR": str(home / ".config" / "matplotlib"),
-                       "ACRMDN_CACHE": str(pool), "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg"})
+                       "ACRMDN_CACHE": str(pool), "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg",
+                       "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+    if "torch" in sys.modules:  # imported before this hook (by a plugin): the variable came too late
+        sys.modules["torch"].set_num_threads(1)
 
 
 @pytest.hookimpl(optionalhook=True)

@@ -59,6 +59,7 @@ def _serve(args: list[str], store: Path) -> tuple[list[dict], str]:
     return studies, out
 
 
+@pytest.mark.slow
 def test_dashboard_lists_the_sweeps_in_the_default_journal(tmp_path):
     _make_study(f"journal:{tmp_path / JOURNAL_NAME}", "reacher-ac-lstm-mdn", trials=3)
     _make_study(f"journal:{tmp_path / JOURNAL_NAME}", "pick-place-lstm-mdn", trials=2)
@@ -68,6 +69,7 @@ def test_dashboard_lists_the_sweeps_in_the_default_journal(tmp_path):
     assert "reacher-ac-lstm-mdn: 3 trial(s)" in out and "/dashboard" in out
 
 
+@pytest.mark.slow
 def test_dashboard_over_an_rdb_url(tmp_path):
     url = f"sqlite:///{tmp_path / 'optuna.db'}"
     _make_study(url, "sweep-on-rdb", trials=2)
@@ -76,6 +78,7 @@ def test_dashboard_over_an_rdb_url(tmp_path):
     assert url in out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, says", [([], "no sweep storage at"), (["--storage", "nosuch://x"], "error: ")])
 def test_nothing_to_open_is_one_line_and_exit_2(tmp_path, args, says):
     proc = subprocess.run([sys.executable, "-m", "experiments.dashboard", *args], cwd=tmp_path, env=_env(tmp_path),

@@ -95,6 +95,7 @@ def _missing_arrays(npz, meta):
     npz.unlink()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", [_corrupt_garbage, _truncate, _tamper_arrays, _garble_metadata,
                                     _old_format, _missing_arrays])
 def test_damaged_cache_is_reported_once_and_rebuilt(cache, small, caplog, damage, good_entry):
@@ -117,6 +118,7 @@ def test_damaged_cache_is_reported_once_and_rebuilt(cache, small, caplog, damage
     assert not _warnings(caplog)
 
 
+@pytest.mark.slow
 def test_cache_from_another_config_is_not_used(cache, small, caplog, monkeypatch):
     """An entry written under other defaults (same file name, other config hash) is rebuilt."""
     import envs.datasets
@@ -160,6 +162,7 @@ def test_default_cache_dir(monkeypatch, tmp_path):
     assert datasets.default_cache_dir().name == "acrmdn"
 
 
+@pytest.mark.slow
 def test_non_default_task_config_has_its_own_entry(tmp_path):
     """A task built with other options gets its own cache entry: the default one is not overwritten."""
     from envs.tasks.reacher import Reacher

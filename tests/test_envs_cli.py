@@ -25,6 +25,7 @@ def test_list_names_every_task(capsys):
     assert any("reacher-changing-goal" in line and "trained on reacher" in line for line in out)
 
 
+@pytest.mark.slow
 def test_unknown_task_is_one_line_and_exit_status_2(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "envs", "describe", "nope"], capture_output=True, text=True,
                           cwd=tmp_path)

@@ -40,6 +40,7 @@ def _without_permission_override() -> list[str]:
     return ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
 
 
+@pytest.mark.slow
 def test_unwritable_working_directory_fails_at_once_with_one_line(tmp_path):
     work = tmp_path / "ro"
     work.mkdir()
@@ -68,6 +69,7 @@ def _open_store(uri: str, barrier, results) -> None:
         results.put(f"{type(exc).__name__}: {exc}"[:300])
 
 
+@pytest.mark.slow
 def test_processes_creating_a_fresh_store_at_once_do_not_race_on_its_schema(tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     ctx = mp.get_context("spawn")
@@ -96,6 +98,7 @@ def test_missing_folder_and_corrupt_database_fail_at_once_without_a_hint_to_wait
     assert "not a usable SQLite database" in str(corrupt.value) and "start it" not in str(corrupt.value)
 
 
+@pytest.mark.slow
 def test_one_line_errors_stay_one_line_despite_pybullets_banner(tmp_path):
     proc = subprocess.run(_cli("ablation", "--profile", "smoke", "--tasks", "nope"), cwd=tmp_path,
                           env=_env(tmp_path), capture_output=True, text=True, timeout=120)
@@ -111,6 +114,7 @@ def test_redacted_urls_hide_passwords():
     assert redact("http://127.0.0.1:5000") == "http://127.0.0.1:5000"
 
 
+@pytest.mark.slow
 def test_a_claim_is_taken_once_and_freed_when_its_holder_is_gone(tmp_path):
     from experiments.claims import is_live, latest_claim, try_claim
     from experiments.tracking import Client, get_or_create_experiment

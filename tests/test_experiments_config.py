@@ -158,6 +158,7 @@ def test_tracking_uri_default_and_env(tmp_path, monkeypatch):
     assert tracking_uri() == "http://tracking:5000"
 
 
+@pytest.mark.slow
 def test_metric_buffer_batches(tmp_path):
     from experiments.tracking import Client, get_or_create_experiment
 

@@ -111,6 +111,7 @@ def _code_inside(path: Path) -> str:
     return "cannot read checkpoint"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", [_truncated, _other_version, _code_inside])
 def test_unusable_checkpoint_artifact_is_retrained_with_one_warning(tmp_path, caplog, damage):
     from experiments.tracking import Client, get_or_create_experiment
@@ -179,6 +180,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_tracking_server_down_gives_one_clear_error_after_bounded_retries(tmp_path):
     env = {**_env(tmp_path), "MLFLOW_TRACKING_URI": f"http://127.0.0.1:{_free_port()}",
            "ACRMDN_STORE_ATTEMPTS": "3", "ACRMDN_STORE_DELAY": "0.1"}
@@ -200,6 +202,7 @@ def _mlflow_store(tmp_path: Path) -> MlflowClient:
     return client
 
 
+@pytest.mark.slow
 def test_locked_sqlite_store_gives_one_clear_error_and_stays_untouched(tmp_path):
     client = _mlflow_store(tmp_path)
     before = [e.name for e in client.search_experiments()]
@@ -220,6 +223,7 @@ def test_locked_sqlite_store_gives_one_clear_error_and_stays_untouched(tmp_path)
     assert not client.search_runs([e.experiment_id for e in client.search_experiments()])
 
 
+@pytest.mark.slow
 def test_store_locked_for_a_moment_is_waited_for(tmp_path):
     from experiments.stores import wait_for_stores
 

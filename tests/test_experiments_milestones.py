@@ -84,6 +84,7 @@ def test_success_vs_iterations_figure_draws_each_variant(kept_store, tmp_path):
     (["--study", "nope"], "no ablation study named 'nope'"),
     (["--study", "kept", "--rollouts", "0"], "--rollouts must be >= 1"),
 ])
+@pytest.mark.slow
 def test_bad_selection_is_one_line_and_exit_2(tmp_path, args, message):
     proc = run_cli(["milestones", *args], tmp_path)
     assert proc.returncode == 2

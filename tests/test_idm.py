@@ -121,6 +121,7 @@ def test_torque_world_friction_damping_and_perturbation():
         assert m == pytest.approx(m0 * real.mass_scale[1])
 
 
+@pytest.mark.slow
 def test_short_idm_rollout_in_pybullet_stays_stable():
     data = collect(ExplorationConfig(episodes=6, episode_seconds=2.0, seed=5), progress=False)
     model, _ = train_idm(data, IDMConfig(hidden=64, epochs=15, batch_size=64, val_fraction=0.0))
@@ -136,6 +137,7 @@ def test_short_idm_rollout_in_pybullet_stays_stable():
     assert len(ctrl.states) == 2 and len(ctrl.actions) == 2
 
 
+@pytest.mark.slow
 def test_idm_study_smoke_end_to_end(tmp_path):
     from experiments.postprocess import load_config
     from stm.idm_study import idm_study

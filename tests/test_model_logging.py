@@ -42,6 +42,7 @@ def _tiny_stm() -> STM:
     return STM(ModelConfig.from_dict({"hidden_size": 8, "num_layers": 1, "head": "mdn", "mixtures": 2}), task.layout)
 
 
+@pytest.mark.slow
 def test_model_is_logged_once_into_the_runs_experiment(store_run, monkeypatch):
     client, run_id, exp = store_run
     model = _tiny_stm()
@@ -76,6 +77,7 @@ def test_model_is_logged_once_into_the_runs_experiment(store_run, monkeypatch):
     assert any(r.startswith("acrmdn") for r in requirements)
 
 
+@pytest.mark.slow
 def test_a_model_left_unfinished_by_a_killed_attempt_is_replaced(store_run):
     client, run_id, exp = store_run
     stale = client.create_logged_model(exp, name=MODEL_NAME, source_run_id=run_id)  # PENDING, no artifacts

@@ -235,6 +235,7 @@ def test_unknown_selection_is_one_line_exit_2(store, args, message, capsys, tmp_
     assert message in err and "\n" not in err
 
 
+@pytest.mark.slow
 def test_empty_or_missing_store_is_one_line_exit_2(tmp_path, capsys):
     assert main(["--tracking-uri", f"sqlite:///{tmp_path / 'absent.db'}", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
@@ -328,6 +329,7 @@ def _failed_only_store(tmp_path) -> str:
     return uri
 
 
+@pytest.mark.slow
 def test_store_whose_only_study_failed_is_one_line_exit_2_and_no_folder(tmp_path, capsys):
     uri = _failed_only_store(tmp_path)
     capsys.readouterr()  # MLflow's own schema-creation log lines
@@ -428,6 +430,7 @@ def test_study_summary_prints_the_report_success_table(store):
     assert "60% / 80%" in row and re.search(r"\| 20 +\| 2 +\|$", row)  # 2 seeds x 10 rollouts
 
 
+@pytest.mark.slow
 def test_failed_study_beside_a_good_one_is_skipped_with_one_line(tmp_path, capsys):
     uri = _failed_only_store(tmp_path)
     client = MlflowClient(uri)

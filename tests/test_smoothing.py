@@ -71,6 +71,7 @@ def test_bad_shapes_raise_clear_errors():
         smooth_gd(np.zeros((1, 4, 7)), gamma=-1.0)
 
 
+@pytest.mark.slow
 def test_smoothing_study_writes_figure_and_metrics(tmp_path):
     from stm.smoothing import smoothing_study
 

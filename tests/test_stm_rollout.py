@@ -19,6 +19,7 @@ def overfit():
     return task, demos, res.model
 
 
+@pytest.mark.slow
 def test_rollout_of_an_overfit_model_reproduces_its_demo(overfit):
     task, demos, model = overfit
     episodes = demo_episodes(demos, 1)

@@ -24,6 +24,7 @@ def demos(task, tmp_path_factory):
     return load_demos(task, seed=0, cache_dir=tmp_path_factory.mktemp("circle_cache"))
 
 
+@pytest.mark.slow
 def test_ten_demos_with_evenly_spaced_radii(demos, task):
     assert len(demos) == 10
     radii = demos.psi[:, 0, 0]

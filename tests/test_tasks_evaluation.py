@@ -58,6 +58,7 @@ def test_a_model_trained_sampling_is_evaluated_sampling():
     np.testing.assert_array_equal(sampled.q, again.q)  # sampling is seeded by the training seed
 
 
+@pytest.mark.slow
 def test_circle_radii_come_from_the_eval_section_and_metrics_from_the_task():
     metrics, (d,) = evaluate_model(_model("circle"), ["circle"], {**EVAL, "rollouts": 4}, seed=3, timings=True)
     assert [ep.info["radius"] for ep in d.episodes] == [0.05, 0.075, 0.05, 0.075]
@@ -70,6 +71,7 @@ def test_circle_radii_come_from_the_eval_section_and_metrics_from_the_task():
     assert d.timing["ik_seconds_per_traj"] > 0 and d.timing["ik_batched_seconds_per_traj"] > 0
 
 
+@pytest.mark.slow
 def test_changing_goal_rollouts_carry_the_experts_path_after_the_switch():
     _, (d,) = evaluate_model(_model("reacher-changing-goal", "deterministic"), ["reacher-changing-goal"], EVAL,
                              seed=0, timings=True)

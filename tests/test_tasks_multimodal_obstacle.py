@@ -20,6 +20,7 @@ def test_registered_and_named_multimodal():
     assert "multimodal" in TASKS["reacher-obstacle-multimodal"].description
 
 
+@pytest.mark.slow
 def test_demos_are_bimodal_and_labelled(task, demos):
     modes = np.array(demos.meta["modes"])
     assert demos.meta["mode_names"] == list(MODES)
@@ -39,6 +40,7 @@ def test_state_does_not_reveal_the_mode(demos):
     assert np.allclose(demos.psi, demos.psi[:, :1])  # psi is the goal only, constant along a demo
 
 
+@pytest.mark.slow
 def test_expert_succeeds_in_physics_both_ways(task, episodes):
     modes = np.arange(len(episodes)) % 2
     q0 = np.stack([ep.q0 for ep in episodes])
@@ -53,6 +55,7 @@ def test_expert_succeeds_in_physics_both_ways(task, episodes):
     assert all(r["collided"] == 0.0 for r, s in zip(results, success, strict=True) if s)
 
 
+@pytest.mark.slow
 def test_direct_and_averaged_paths_are_between_and_fail(task, episodes):
     eps = episodes[:4]
     q0 = np.stack([ep.q0 for ep in eps])

@@ -19,6 +19,7 @@ def test_registered_and_named_multimodal():
     assert "multimodal" in TASKS["reacher-posture-multimodal"].description
 
 
+@pytest.mark.slow
 def test_demos_are_bimodal_and_labelled(task, demos):
     modes = np.array(demos.meta["modes"])
     assert demos.meta["mode_names"] == list(MODES)
@@ -58,6 +59,7 @@ def test_posture_coordinate_and_classify():
     assert [classify(c) for c in (-0.1, 0.2, 0.5, 0.8, 1.2)] == [0, 0, -1, 1, 1]
 
 
+@pytest.mark.slow
 def test_expert_succeeds_in_physics_in_both_postures(task, episodes):
     modes = np.arange(len(episodes)) % 2
     q0 = np.stack([ep.q0 for ep in episodes])

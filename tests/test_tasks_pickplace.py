@@ -48,6 +48,7 @@ def test_registry_and_model_tasks():
     assert PickPlace().n_demos == 150
 
 
+@pytest.mark.slow
 def test_dataset_counts_lengths_and_meta(task, demos):
     assert len(demos) == 3
     assert ((demos.lengths >= 166) & (demos.lengths <= 170)).all()
@@ -85,6 +86,7 @@ def test_state_layout_consistency(task, demos):
         assert np.allclose(tip, [PICK_XY[0], PICK_XY[1], level_z(0) + 0.03], atol=2e-3)
 
 
+@pytest.mark.slow
 def test_expert_demo_succeeds_when_replayed_and_evaluation_is_repeatable(task, demos):
     q, grip = _demo(demos, 0)
     r = task.evaluate(q, grip, _episode_of(demos, 0))
@@ -99,6 +101,7 @@ def test_never_closing_the_gripper_fails(task, demos):
     assert r["success"] == 0.0 and r["final_distance"] > 0.1  # the block stayed at the pick position
 
 
+@pytest.mark.slow
 def test_block_placed_5cm_off_fails(task):
     ep = task.episodes(1, seed=3)[0]
     off = np.asarray(ep.info["goal"]) + [0.05, 0.0, 0.0]
@@ -107,6 +110,7 @@ def test_block_placed_5cm_off_fails(task):
     assert r["success"] == 0.0 and abs(r["xy_error"] - 0.05) < 0.005 and abs(r["z_error"]) < 0.005
 
 
+@pytest.mark.slow
 def test_holding_on_or_staying_at_the_block_fails(task, demos):
     q, grip = _demo(demos, 2)
     ep = _episode_of(demos, 2)
@@ -146,6 +150,7 @@ def test_stacking_episode_layout():
     assert ep.info["restart_steps"] == [SUB_HORIZON, 2 * SUB_HORIZON]  # one fresh pick-and-place per block
 
 
+@pytest.mark.slow
 def test_expert_stacking_succeeds_in_physics():
     st = get_task("stack")
     ep = st.episodes(1, seed=0)[0]
@@ -155,6 +160,7 @@ def test_expert_stacking_succeeds_in_physics():
     assert r["success"] == 1.0 and r["blocks_in_tower"] == 3 and r["final_distance"] < 0.01
 
 
+@pytest.mark.slow
 def test_stacking_with_the_top_block_off_axis_fails():
     st = get_task("stack")
     ep = st.episodes(1, seed=0)[0]
@@ -165,6 +171,7 @@ def test_stacking_with_the_top_block_off_axis_fails():
     assert r["success"] == 0.0 and r["blocks_in_tower"] == 2
 
 
+@pytest.mark.slow
 def test_changing_goal_expert_adapts_and_a_blind_one_fails():
     cg = get_task("pick-place-changing-goal")
     ep = cg.episodes(1, seed=2)[0]

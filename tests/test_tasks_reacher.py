@@ -29,6 +29,7 @@ def _in(box, x):
     return all(lo <= v <= hi for (lo, hi), v in zip(box, x, strict=True))
 
 
+@pytest.mark.slow
 def test_counts_lengths_and_padding(demos, task):
     assert len(demos) == 45
     assert demos.lengths.min() >= 50 and demos.lengths.max() <= 70
@@ -115,6 +116,7 @@ def test_evaluate_rejects_bad_trajectories(task):
         task.evaluate(bad, None, ep)
 
 
+@pytest.mark.slow
 def test_demos_are_deterministic_per_seed():
     small = get_task("reacher", n_demos=2)
     a, b, c = small.demos(7), small.demos(7), small.demos(8)

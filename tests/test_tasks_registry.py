@@ -54,6 +54,7 @@ def test_every_module_of_the_folder_is_discovered_without_an_import_line():
     assert not any(m.startswith("envs.tasks.") and m != "envs.tasks.registry" for m in _imports(TASKS_DIR / "base.py"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("first", ["envs.tasks.base", "envs.tasks.registry", "envs.tasks.stack", "envs.datasets"])
 def test_any_module_imports_first_in_a_fresh_process(first):
     code = f"import {first}; from envs.tasks import TASKS; print(len(TASKS))"
