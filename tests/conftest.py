@@ -10,9 +10,10 @@
   generates (validated) go back to the pool: each demonstration set is generated about once per
   session (reacher's takes ~10 CPU-s), while no test sees another test's writes or damage.
 - `smoke_store`: one smoke ablation (`python -m experiments ablation --profile smoke`) built once
-  per session through the CLI, for the tests that read a real study's store.
+  per test run through the CLI (under pytest-xdist: by the first worker that needs it, the others wait
+  on a file lock), for the tests that read a real study's store.
 - `results_store`: a smoke ablation (2 rollouts) and a 2-trial smoke sweep in one store, built once per
-  session, for the RESULTS.md and study export tests (read only).
+  test run likewise, for the RESULTS.md and study export tests (read only).
 - One intra-op thread per test process and per subprocess (OMP_NUM_THREADS=1), as the CLI gives each
   worker: pytest-xdist runs a process per core, and two threads each on busy cores spin at barriers
   (a smoke cell measured 68 s with 2 threads on a loaded 2-core machine, 24 s with 1).
@@ -139,6 +140,31 @@ def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
                 os.replace(tmp, pool / path.name)
 
 
+def _built_once(name: str, build) -> tuple[Path, str]:
+    """A folder `build(folder) -> text` fills, built once per test run: under pytest-xdist the first
+    worker that needs it builds it in the session's shared root while the others wait on a file lock
+    (a failed build is retried by the next worker that needs it). Returns the folder and the text."""
+    from filelock import FileLock
+
+    root = _SESSION["root"]
+    folder, done = root / name, root / f"{name}.built"
+    with FileLock(str(root / f"{name}.lock")):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            text = build(folder)
+            done.write_text(text)
+    return folder, done.read_text()
+
+
+def _cli(store: Path, *args: str, timeout: float = 900) -> str:
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
+    proc = subprocess.run([sys.executable, "-m", "experiments", *args], cwd=store, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    return proc.stdout
+
+
 @dataclass(frozen=True)
 class SmokeStore:
     """A finished smoke ablation: its folder (mlflow.db inside), tracking URI and CLI output."""
@@ -149,26 +175,23 @@ class SmokeStore:
 
 
 @pytest.fixture(scope="session")
-def smoke_store(tmp_path_factory: pytest.TempPathFactory) -> SmokeStore:
-    """`python -m experiments ablation --profile smoke --workers 2`, built once per session (under
-    pytest-xdist: once per worker that runs a module using it; each worker's tests see only its own).
-    Shared: tests may add to it (a re-run, a report logged to the parent run), never remove."""
-    store = tmp_path_factory.mktemp("smoke-store")
-    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
-    proc = subprocess.run([sys.executable, "-m", "experiments", "ablation", "--profile", "smoke", "--workers", "2"],
-                          cwd=store, env=env, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
-    return SmokeStore(store, env["MLFLOW_TRACKING_URI"], proc.stdout)
+def smoke_store() -> SmokeStore:
+    """`python -m experiments ablation --profile smoke --workers 2`, built once per test run (shared by
+    the xdist workers). Shared: tests may add to it (a re-run, a report logged to the parent run),
+    never remove."""
+    path, stdout = _built_once("smoke-store", lambda store: _cli(store, "ablation", "--profile", "smoke",
+                                                                 "--workers", "2"))
+    return SmokeStore(path, f"sqlite:///{path / 'mlflow.db'}", stdout)
 
 
 @pytest.fixture(scope="session")
-def results_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A folder whose mlflow.db holds a smoke ablation and a smoke sweep of reacher (built through the CLI)."""
-    store = tmp_path_factory.mktemp("results-store")
-    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
-    for args in (["ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2"],
-                 ["sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2"]):
-        proc = subprocess.run([sys.executable, "-m", "experiments", *args], cwd=store, env=env, capture_output=True,
-                              text=True, timeout=600)
-        assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
-    return store
+def results_store() -> Path:
+    """A folder whose mlflow.db holds a smoke ablation and a smoke sweep of reacher (built through the CLI,
+    once per test run); read only."""
+
+    def build(store: Path) -> str:
+        return _cli(store, "ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2") + \
+            _cli(store, "sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2",
+                 timeout=600)
+
+    return _built_once("results-store", build)[0]
