@@ -77,7 +77,14 @@ from experiments.ablation import TORCH_THREADS, command_line, default_workers
 from experiments.config import ConfigError, StudyConfig, SweepConfig, config_hash, from_dict
 from experiments.procs import worker_pool
 from experiments.sweep_figures import importance_evaluator, param_importances, sweep_figures
-from experiments.sweep_objective import UV, MlflowTrialLink, grid_space, objective_factory, trial_configs, uv_pairs
+from experiments.sweep_objective import (
+    MlflowTrialLink,
+    expand_uv,
+    grid_space,
+    objective_factory,
+    trial_configs,
+    uv_pairs,
+)
 from experiments.sweep_storage import (
     describe,
     drain,
@@ -349,14 +356,6 @@ def _finish(cfg: StudyConfig, client: Client, spec: str, name: str, experiment_i
     client.set_tag(parent_id, NOTE_TAG, outcome.note())
     client.set_terminated(parent_id, "FINISHED" if not outcome.failed else "FAILED")
     return outcome
-
-
-def expand_uv(params: dict[str, Any]) -> dict[str, Any]:
-    """A trial's parameters with the grid's (u, v) pair "u/v" as u and v (what the configs got)."""
-    out = {k: v for k, v in params.items() if k != UV}
-    if UV in params:
-        out["u"], out["v"] = (int(x) for x in str(params[UV]).split("/"))
-    return out
 
 
 def unrecovered_failures(trials) -> list:

@@ -53,6 +53,19 @@ def uv_pairs(s: SweepConfig) -> tuple[tuple[int, int], ...]:
     return s.grid_uv if s.sampler == "grid" and {"u", "v"} <= set(s.space) else ()
 
 
+def uv_choices(pairs: tuple[tuple[int, int], ...]) -> list[str]:
+    """The (u, v) pairs as the values of the grid's parameter "uv": "u/v"."""
+    return [f"{u}/{v}" for u, v in pairs]
+
+
+def expand_uv(params: dict[str, Any]) -> dict[str, Any]:
+    """A trial's parameters with the grid's (u, v) pair "u/v" as u and v (what the configs get)."""
+    out = {k: v for k, v in params.items() if k != UV}
+    if UV in params:
+        out["u"], out["v"] = (int(x) for x in str(params[UV]).split("/"))
+    return out
+
+
 def grid_space(s: SweepConfig) -> dict[str, list]:
     """The grid sampler's search space: each swept parameter's grid values; u and v as one
     parameter "uv" (values "u/v") when sweep.grid_uv gives pairs."""
@@ -60,7 +73,7 @@ def grid_space(s: SweepConfig) -> dict[str, list]:
     pairs = uv_pairs(s)
     space = {p: grids[p] for p in s.space if not (pairs and p in ("u", "v"))}
     if pairs:
-        space[UV] = [f"{u}/{v}" for u, v in pairs]
+        space[UV] = uv_choices(pairs)
     return space
 
 
@@ -71,8 +84,7 @@ def suggest(trial, space: tuple[str, ...], pairs: tuple[tuple[int, int], ...] = 
     if "m" in space:
         out["m"] = trial.suggest_int("m", *INT_RANGES["m"], log=True)
     if pairs:
-        u, v = trial.suggest_categorical(UV, [f"{u}/{v}" for u, v in pairs]).split("/")
-        out["u"], out["v"] = int(u), int(v)
+        out.update(expand_uv({UV: trial.suggest_categorical(UV, uv_choices(pairs))}))
     else:
         if "u" in space:
             out["u"] = trial.suggest_int("u", *INT_RANGES["u"])

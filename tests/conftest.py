@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 SCRUBBED_PREFIXES = ("MLFLOW_", "OPTUNA_", "ACRMDN_")
@@ -157,10 +157,9 @@ def _built_once(name: str, build) -> tuple[Path, str]:
     return folder, done.read_text()
 
 
-def _cli(store: Path, *args: str, timeout: float = 900) -> str:
-    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}"}
-    proc = subprocess.run([sys.executable, "-m", "experiments", *args], cwd=store, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+def _cli_output(store: Path, *args: str, timeout: int = 900) -> str:
+    """`python -m experiments ARGS` on the store in `store` (cli_helpers.run_cli), which must succeed: its output."""
+    proc = run_cli(list(args), store, timeout=timeout)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     return proc.stdout
 
@@ -179,8 +178,8 @@ def smoke_store() -> SmokeStore:
     """`python -m experiments ablation --profile smoke --workers 2`, built once per test run (shared by
     the xdist workers). Shared: tests may add to it (a re-run, a report logged to the parent run),
     never remove."""
-    path, stdout = _built_once("smoke-store", lambda store: _cli(store, "ablation", "--profile", "smoke",
-                                                                 "--workers", "2"))
+    path, stdout = _built_once("smoke-store", lambda store: _cli_output(store, "ablation", "--profile", "smoke",
+                                                                        "--workers", "2"))
     return SmokeStore(path, f"sqlite:///{path / 'mlflow.db'}", stdout)
 
 
@@ -190,8 +189,8 @@ def results_store() -> Path:
     once per test run); read only."""
 
     def build(store: Path) -> str:
-        return _cli(store, "ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2") + \
-            _cli(store, "sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set", "train.val_every=2",
-                 timeout=600)
+        return _cli_output(store, "ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2") + \
+            _cli_output(store, "sweep", "--profile", "smoke", "--workers", "1", "--trials", "2", "--set",
+                        "train.val_every=2", timeout=600)
 
     return _built_once("results-store", build)[0]
