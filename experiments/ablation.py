@@ -13,13 +13,11 @@ report the same table."""
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shlex
 import sys
 import time
-from concurrent.futures import as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +27,7 @@ from experiments.claims import Claimed, claimed_cell, is_live
 from experiments.config import StudyConfig
 from experiments.pack import pack_units, run_unit
 from experiments.procs import worker_pool
+from experiments.schedule import prepare_datasets, run_scheduled
 from experiments.tracking import (
     ABLATION,
     NOTE_TAG,
@@ -122,23 +121,6 @@ def settle_cell_runs(client: Client, experiment_id: str, parent_id: str, todo: l
     return out
 
 
-def prepare_datasets(cells: list[Cell]) -> None:
-    """Build (or validate) the cached demonstrations of the cells' training tasks once, in the
-    main process, so that parallel workers never generate the same dataset twice."""
-    from envs.datasets import load_demos
-    from envs.tasks import get_task
-
-    datasets = {(c.task, json.dumps(c.data, sort_keys=True), c.dataset_seed): c for c in cells}
-    for (name, _, seed), cell in sorted(datasets.items()):
-        start = time.perf_counter()
-        try:
-            demos = load_demos(get_task(name, **cell.data), seed=seed)
-        except Exception as exc:  # the task's cells will fail with this error and be reported
-            log.error("demonstrations for %s could not be built: %s: %s", name, type(exc).__name__, exc)
-            continue
-        log.info("demonstrations for %s: %d demos (%.1fs)", name, len(demos), time.perf_counter() - start)
-
-
 def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     start = time.perf_counter()
     uri = tracking_uri()
@@ -155,7 +137,6 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     todo, outcome.skipped = prepare_runs(client, experiment_id, parent_id, cells)
     for key in outcome.skipped:
         log.info("skip %s: FINISHED with the same config hash", key)
-    prepare_datasets([cell for cell, _ in todo])
     units = pack_units(todo, cfg.pack)
     workers = cfg.workers or default_workers()
     workers = max(1, min(workers, len(units))) if units else 1
@@ -168,6 +149,7 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     held: list[tuple[Cell, str]] = []
     try:
         if workers == 1:
+            prepare_datasets([cell for cell, _ in todo])  # once, here, before any worker needs them
             for unit in units:
                 got = run_unit(*_unit_args(unit), uri, interactive, level, TORCH_THREADS, *claim, False)
                 _record_unit(outcome, unit, got, bar, len(todo), interactive, held)
@@ -232,23 +214,23 @@ def _record_unit(outcome: StudyOutcome, unit: list[tuple[Cell, str]], got: list[
 
 def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held) -> None:
     """Each unit (a cell, or a cell group's seeds packed: experiments/pack.py) in a worker process."""
-    pending = {}
     total = sum(len(u) for u in units)
+
+    def record(unit, fut) -> None:
+        try:
+            got = fut.result()
+        except BrokenProcessPool:
+            raise
+        except Exception as exc:  # e.g. a result that failed to pickle
+            got = [Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}"))
+                   for cell, run_id in unit]
+        _record_unit(outcome, unit, got, bar, total, interactive, held)
+
     try:
         with worker_pool(workers) as pool:
-            for unit in units:
-                fut = pool.submit(run_unit, *_unit_args(unit), uri, False, level, TORCH_THREADS, *claim, False)
-                pending[fut] = unit
-            for fut in as_completed(pending):
-                unit = pending[fut]
-                try:
-                    got = fut.result()
-                except BrokenProcessPool:
-                    raise
-                except Exception as exc:  # e.g. a result that failed to pickle
-                    got = [Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}"))
-                           for cell, run_id in unit]
-                _record_unit(outcome, unit, got, bar, total, interactive, held)
+            # datasets built here meanwhile, so that no two workers build the same one (experiments.schedule)
+            run_scheduled(units, workers, lambda unit: pool.submit(run_unit, *_unit_args(unit), uri, False, level,
+                                                                   TORCH_THREADS, *claim, False), record)
     except BrokenProcessPool as exc:
         done = {r.run_id for r in outcome.results} | {run_id for _, run_id in held}
         client = Client(uri)

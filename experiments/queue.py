@@ -24,11 +24,12 @@ from __future__ import annotations
 import logging
 import time
 
-from experiments.ablation import EXPERIMENT, TORCH_THREADS, StudyOutcome, finish_parent, prepare_datasets, prepare_runs
+from experiments.ablation import EXPERIMENT, TORCH_THREADS, StudyOutcome, finish_parent, prepare_runs
 from experiments.cells import Cell, build_cells
 from experiments.config import ConfigError, StudyConfig, from_dict
 from experiments.pack import pack_units, run_unit
 from experiments.procs import worker_pool
+from experiments.schedule import prepare_datasets
 from experiments.sweep_storage import describe, drain, open_storage, trials_in, worker_id
 from experiments.tracking import (
     Client,
