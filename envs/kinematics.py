@@ -12,7 +12,6 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-import pytorch_kinematics as pk
 import torch
 
 from envs.robot import ARM_JOINTS, HAND_LINK, LIMITS, NEUTRAL_Q, TIP_LINK, URDF_PATH, URDFError, read_urdf
@@ -32,6 +31,8 @@ class SawyerKinematics:
     """Forward kinematics and Jacobian of `right_gripper_tip` (and `right_hand`)."""
 
     def __init__(self, urdf_path: str | Path = URDF_PATH, dtype: torch.dtype = torch.float32, device="cpu"):
+        import pytorch_kinematics as pk  # here: ~0.45 s of import, not paid by processes without FK
+
         text = read_urdf(urdf_path)
         try:
             chain = pk.build_serial_chain_from_urdf(text, TIP_LINK)

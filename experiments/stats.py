@@ -12,7 +12,6 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
-from scipy.stats import binomtest
 
 CONFIDENCE = 0.95
 BOOTSTRAP_REPLICATES = 4000
@@ -31,6 +30,8 @@ def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> t
     """Wilson score interval of a binomial proportion; (nan, nan) when there are no trials."""
     if n <= 0:
         return math.nan, math.nan
+    from scipy.stats import binomtest  # here: scipy.stats costs ~0.5 s of import in every process
+
     ci = binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
     return float(ci.low), float(ci.high)
 
