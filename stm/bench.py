@@ -11,9 +11,11 @@ auto-conditioning with u = v = 2 and u = v = 5, and a plain reference (nn.LSTM +
 linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three
 schedules for a pack of K = 3 models trained together (stm.packed): packed_speedup_* =
 (K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the lower of the two
-auto-conditioned schedules'. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
-3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and
-for 34 episodes (an evaluation cell's).
+auto-conditioned schedules'; matmul_share_ac_u5v5 is the share of one model's a.c. iteration
+spent in matrix products (torch.profiler; a lower bound) and packed_speedup_ceiling the most a pack
+of K could then gain (Amdahl: products cost K-fold, the rest once). Then 1,000 reacher rollouts
+of 70 steps with FK grounding, and 3 models' rollouts batched (stm.packed_rollout) against one
+after the other, for 1,000 and for 34 episodes (an evaluation cell's).
 
 Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
 time also counts the other processes' load. Ratios are what to read.
@@ -134,6 +136,27 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin):
     return make
 
 
+MATMULS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm"}
+
+
+def matmul_share(fn) -> float:
+    """The share of one call's op time spent in matrix products (torch.profiler, self CPU time). The
+    profiler's per-op cost inflates the other ops, so this is a lower bound of the share."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    events = prof.key_averages()
+    total = sum(e.self_cpu_time_total for e in events)
+    return sum(e.self_cpu_time_total for e in events if e.key in MATMULS) / total if total else float("nan")
+
+
+def packing_ceiling(share: float, k: int) -> float:
+    """Amdahl: the speedup of packing k models if everything but the matrix products (whose arithmetic
+    grows k-fold, packed or not) cost nothing extra per model."""
+    return 1.0 / (share + (1.0 - share) / k)
+
+
 def training_bench(size: str, rounds: int, reps: int) -> dict:
     spec = SIZES[size]
     task = BenchTask(size, spec["gripper"])
@@ -178,6 +201,7 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         for k, fn in cases.items():
             times[k].append(_time_once(fn, reps))
     med = {k: statistics.median(v) for k, v in times.items()}
+    share = matmul_share(cases["ac_u5v5"])
     speedup = {k: round(PACK * med[k] / med[f"packed_{k}"], 3) for k in ("tf", "ac_u2v2", "ac_u5v5")}
     return {
         "size": size, "state_dim": task.layout.dim, **{k: spec[k] for k in ("hidden", "mixtures", "batch", "steps")},
@@ -188,6 +212,9 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "packed_k": PACK,
         **{f"packed_speedup_{k}": speedup[k] for k in ("tf", "ac_u2v2", "ac_u5v5")},
         "packed_speedup_ac": min(speedup["ac_u2v2"], speedup["ac_u5v5"]),
+        # why packing gains little on a CPU: the matrix products are compute-bound (their time grows k-fold)
+        "matmul_share_ac_u5v5": round(share, 3),
+        "packed_speedup_ceiling": round(packing_ceiling(share, PACK), 3),
         "packed_ratio_ac_u2v2_over_tf": round(med["packed_ac_u2v2"] / med["packed_tf"], 3),
         "packed_ratio_ac_u5v5_over_tf": round(med["packed_ac_u5v5"] / med["packed_tf"], 3),
         # the clock's seconds per 1,000 auto-conditioned iterations of the whole pack (CPU seconds with --clock cpu)

@@ -181,4 +181,16 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
     for k in ("tf", "ac_u2v2", "ac_u5v5"):
         assert entry[f"packed_speedup_{k}"] == pytest.approx(3 * ms[k] / ms[f"packed_{k}"], rel=0.02)
     assert entry["packed_speedup_ac"] == min(entry["packed_speedup_ac_u2v2"], entry["packed_speedup_ac_u5v5"])
+    share = entry["matmul_share_ac_u5v5"]
+    assert 0 < share < 1 and entry["packed_speedup_ceiling"] == pytest.approx(1 / (share + (1 - share) / 3), rel=0.01)
     assert '"packed_speedup_ac"' in capsys.readouterr().out
+
+
+def test_matmul_share_tells_products_from_elementwise_ops():
+    from stm.bench import matmul_share, packing_ceiling
+
+    a, b = torch.randn(256, 256), torch.randn(256, 256)
+    assert matmul_share(lambda: [a @ b for _ in range(5)]) > 0.95
+    assert matmul_share(lambda: [torch.sigmoid(a) * b for _ in range(5)]) == 0.0
+    assert packing_ceiling(0.0, 3) == pytest.approx(3.0) and packing_ceiling(1.0, 3) == pytest.approx(1.0)
+    assert packing_ceiling(0.5, 3) == pytest.approx(1.5)
