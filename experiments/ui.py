@@ -45,9 +45,12 @@ def serve(host: str = "127.0.0.1", port: int = 5000) -> int:
     db = sqlite_path(uri)
     if db is not None:  # new experiments created through the UI keep artifacts beside the db
         cmd += ["--artifacts-destination", str(db.parent / "mlartifacts")]
-    # the server starts helper processes (uvicorn workers, job consumers): run it in its own
-    # process group and stop the whole group on Ctrl-C or SIGTERM, leaving nothing behind
-    proc = subprocess.Popen(cmd, start_new_session=True)
+    # browsing needs no MLflow job execution (GenAI jobs): without it the server starts no huey consumer
+    # processes, each of which imports all of mlflow (a user's explicit setting wins)
+    env = {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false", **os.environ}
+    # the server starts helper processes (uvicorn workers): run it in its own process group and stop
+    # the whole group on Ctrl-C or SIGTERM, leaving nothing behind
+    proc = subprocess.Popen(cmd, start_new_session=True, env=env)
 
     def stop(*_):
         raise KeyboardInterrupt
