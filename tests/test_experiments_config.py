@@ -224,7 +224,8 @@ def test_cell_keys_and_hashes_match_the_recorded_ones():
     and hashes of every profile (recorded on main 991f874, tests/data/cell_hashes.json) must not
     move, or every cell of every existing study would be retrained. The paper profile's entry was
     re-recorded on 1 Dec 2026 when that profile became the headline protocol (issue 16), quick's
-    the same day when its pick-and-place iterations rose to 2,000 (issue 15)."""
+    the same day when its pick-and-place iterations rose to 2,000 and on 2 Dec when its rollouts per
+    seed went from 50 to 40 (issue 15)."""
     import json
 
     recorded = json.loads((REPO / "tests" / "data" / "cell_hashes.json").read_text())
