@@ -120,7 +120,11 @@ def num(x: float, digits: int = 3) -> str:
 
 # ------------------------------------------------------------------------------------------- success
 def success_summary(study: Study, tasks: list[str] | None = None) -> pd.DataFrame:
-    """Aggregated success cells (see stats.aggregate_success) for the study's variants x tasks."""
+    """Aggregated success cells (see stats.aggregate_success) for the study's variants x tasks. A milestones
+    study evaluates only the tasks of the checkpoints kept so far: its rows are those tasks, not gaps."""
+    if tasks is None and study.kind == "milestones":
+        evaluated = set(study.eval_metrics().get("eval_task", pd.Series(dtype=str)))
+        tasks = [t for t in paper.SUCCESS_TASKS if t in evaluated]
     tasks = tasks or list(paper.SUCCESS_TASKS)
     agg = aggregate_success(study.eval_metrics(), study.children, study.variants, tasks,
                             study.model_task_of, study.seeds)

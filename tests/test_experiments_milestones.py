@@ -109,9 +109,12 @@ def test_results_template_names_the_milestones_study(kept_store, tmp_path):
         assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
     template = tmp_path / "t.md"
     template.write_text('{{ budget_table(study="kept") }}\n'
+                        '{{ success_table(study="kept-milestones") }}\n'
                         '{{ figure("success_vs_iterations", study="kept-milestones") }}\n')
     out = write_results(Store(f"sqlite:///{kept_store / 'mlflow.db'}"), template, tmp_path / "R.md", tmp_path / "fig")
     text = out.read_text()
     assert "| reacher | LSTM | 10 | 10 (finished) / 10 (finished) |" in re.sub(" +", " ", text)
+    # the milestones' success table: the tasks its checkpoints were evaluated on, no gap rows for the rest
+    assert re.search(r"\| reacher +\| LSTM +\| \d+%", text) and "| pick-and-place" not in text and " gap " not in text
     assert "](fig/kept-milestones_success_vs_iterations.png)" in text
     assert (tmp_path / "fig" / "kept-milestones_success_vs_iterations.png").is_file()
