@@ -20,8 +20,8 @@ from experiments.cells import Cell
 
 log = logging.getLogger(__name__)
 
-# An auto-conditioned iteration costs several teacher-forced ones (stm.bench: 1.4-2.5x a packed step, more
-# with the rollout's feedback); only the ordering uses this, so a rough factor is enough.
+# An auto-conditioned iteration costs several teacher-forced ones (stm.bench, 2 Dec: 1.8-3.1x, more with the
+# validation rollouts it feeds); only the ordering uses this, so a rough factor is enough.
 AC_ITERATION_WEIGHT = 4.0
 
 Unit = list[tuple[Cell, str]]

@@ -146,21 +146,22 @@ def _mode_of_rows(arrays: dict[str, np.ndarray], modes: list[str]) -> np.ndarray
 
 
 def _draw_paths(ax, tips: list[np.ndarray], labels: np.ndarray, modes: list[str]) -> None:
-    # one LineCollection and one scatter for all paths (thousands of Line2D artists take ~10x longer to
-    # save); between (grey) first, under the modes' colours
+    # one LineCollection and one scatter for all paths (two Line2D artists per rollout, thousands per
+    # figure, made it the slowest figure to save); between (grey) first, under the modes' colours
     from matplotlib.collections import LineCollection
     from matplotlib.colors import to_rgba
 
-    order = np.argsort(labels >= 0, kind="stable")
-    paths = [tips[i][np.isfinite(tips[i]).all(axis=1)][:, :2] for i in order]
-    colours = [to_rgba(BETWEEN_COLOUR if labels[i] < 0 else MODE_COLOURS[labels[i] % len(MODE_COLOURS)])
-               for i in order]
-    kept = [k for k, path in enumerate(paths) if len(path)]
-    ax.add_collection(LineCollection([paths[k] for k in kept], colors=[colours[k] for k in kept], lw=0.7,
-                                     alpha=0.6))
-    if kept:
-        ends = np.array([paths[k][-1] for k in kept])
-        ax.scatter(ends[:, 0], ends[:, 1], s=1.5, c=[colours[k] for k in kept], linewidths=0)
+    drawn = []  # (finite x-y path, colour), paths with no finite point left out
+    for i in np.argsort(labels >= 0, kind="stable"):
+        path = tips[i][np.isfinite(tips[i]).all(axis=1)][:, :2]
+        colour = BETWEEN_COLOUR if labels[i] < 0 else MODE_COLOURS[labels[i] % len(MODE_COLOURS)]
+        if len(path):
+            drawn.append((path, to_rgba(colour)))
+    if drawn:
+        paths, colours = zip(*drawn, strict=True)
+        ax.add_collection(LineCollection(paths, colors=colours, lw=0.7, alpha=0.6))
+        ends = np.array([path[-1] for path in paths])
+        ax.scatter(ends[:, 0], ends[:, 1], s=1.5, c=colours, linewidths=0)
     ax.autoscale_view()
     shares = [f"{m} {np.mean(labels == k):.0%}" for k, m in enumerate(modes)] + [f"between {np.mean(labels < 0):.0%}"]
     ax.text(0.02, 0.02, ", ".join(shares), transform=ax.transAxes, fontsize=7, va="bottom")

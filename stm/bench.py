@@ -212,7 +212,7 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "packed_k": PACK,
         **{f"packed_speedup_{k}": speedup[k] for k in ("tf", "ac_u2v2", "ac_u5v5")},
         "packed_speedup_ac": min(speedup["ac_u2v2"], speedup["ac_u5v5"]),
-        # why packing gains little on a CPU: the matrix products are compute-bound (their time grows k-fold)
+        # what packing could gain if only the matrix products' arithmetic grew K-fold (an upper bound)
         "matmul_share_ac_u5v5": round(share, 3),
         "packed_speedup_ceiling": round(packing_ceiling(share, PACK), 3),
         "packed_ratio_ac_u2v2_over_tf": round(med["packed_ac_u2v2"] / med["packed_tf"], 3),

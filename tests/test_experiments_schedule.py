@@ -48,7 +48,7 @@ def test_with_every_dataset_built_the_costliest_unit_goes_first_and_workers_boun
         started.append((unit[0][0].task, unit[0][0].variant))
         running.append(unit)
         peak[0] = max(peak[0], len(running))
-        return Future()  # finished below, one at a time, by on_done's bookkeeping
+        return Future()  # finished one at a time by finish_oldest, below
 
     def on_done(unit, fut):
         running.remove(unit)
