@@ -14,7 +14,6 @@ report the same table."""
 from __future__ import annotations
 
 import logging
-import os
 import shlex
 import sys
 import time
@@ -26,7 +25,7 @@ from experiments.cells import Cell, build_cells
 from experiments.claims import Claimed, claimed_cell, is_live
 from experiments.config import StudyConfig
 from experiments.pack import pack_units, run_unit
-from experiments.procs import worker_pool
+from experiments.procs import default_workers, worker_pool
 from experiments.schedule import prepare_datasets, run_scheduled
 from experiments.tracking import (
     ABLATION,
@@ -65,10 +64,6 @@ class StudyOutcome:
     @property
     def failures(self) -> list[CellResult]:
         return [r for r in self.results if r.status != "FINISHED"]
-
-
-def default_workers() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _progress(total: int, enabled: bool):

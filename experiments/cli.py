@@ -12,6 +12,7 @@ import logging
 import sys
 
 from experiments.config import ConfigError, StudyConfig, available_profiles, load_profile
+from experiments.procs import default_workers
 
 log = logging.getLogger("experiments")
 
@@ -33,7 +34,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                    help="override any config field, e.g. --set train.iters=2000 --set per_task.pick-place.model."
                         "mixtures=20 (repeatable)")
-    p.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="worker processes (default: $ACRMDN_WORKERS, else one per core)")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
@@ -88,6 +90,8 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
     """The validated, resolved config of a command (variant/schedule conflicts included: the
     config checks them), and for a sweep a dry resolution of its trial configs, so that errors
     are reported before anything is written."""
+    if args.workers is None:
+        default_workers()  # a bad $ACRMDN_WORKERS: one line now, not once the study has started
     if args.command == "ablation":
         return load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
                             seeds=args.seeds, workers=args.workers, pack=args.pack,

@@ -22,9 +22,23 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 
+from experiments.validation import ConfigError
+
 GRACE = 10.0  # seconds an interrupted worker gets to mark its run before it exits anyway
 POLL = 0.5
 _busy = threading.Event()
+WORKERS_ENV = "ACRMDN_WORKERS"
+
+
+def default_workers() -> int:
+    """$ACRMDN_WORKERS (a shared machine's share, or 1 in the test suite: in-process, no spawned
+    interpreters), else one per core this process may use."""
+    raw = os.environ.get(WORKERS_ENV, "").strip()
+    if raw:
+        if not raw.isdigit() or int(raw) < 1:
+            raise ConfigError(f"{WORKERS_ENV}={raw!r}: expected a whole number of worker processes >= 1")
+        return int(raw)
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _on_sigint(signum, frame) -> None:

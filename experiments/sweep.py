@@ -73,9 +73,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiments.ablation import TORCH_THREADS, command_line, default_workers
+from experiments.ablation import TORCH_THREADS, command_line
 from experiments.config import ConfigError, StudyConfig, SweepConfig, config_hash, from_dict
-from experiments.procs import worker_pool
+from experiments.procs import default_workers, worker_pool
 from experiments.sweep_figures import importance_evaluator, param_importances, sweep_figures
 from experiments.sweep_objective import (
     MlflowTrialLink,

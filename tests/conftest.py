@@ -66,7 +66,7 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.update({"HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
                        "XDG_CONFIG_HOME": str(home / ".config"), "MPLCONFIGDIR": str(home / ".config" / "matplotlib"),
                        "ACRMDN_CACHE": str(pool), "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg",
-                       "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+                       "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "ACRMDN_WORKERS": "1"})  # see `isolated`
     if "torch" in sys.modules:  # imported before this hook (by a plugin): the variable came too late
         sys.modules["torch"].set_num_threads(1)
 
@@ -126,6 +126,9 @@ def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
     for key in [k for k in os.environ if k.startswith(SCRUBBED_PREFIXES)]:
         monkeypatch.delenv(key)
     monkeypatch.setenv("ACRMDN_CACHE", str(cache))
+    # studies and sweeps run in-process unless a test asks for --workers: a spawned worker pays ~3-4 CPU-s
+    # of imports (torch, mlflow, pybullet; more under coverage), and the xdist workers already use the cores
+    monkeypatch.setenv("ACRMDN_WORKERS", "1")
     monkeypatch.setenv("PYTHONPATH", str(REPO))
     monkeypatch.chdir(work)  # the default stores (sqlite:///mlflow.db, optuna.journal) are the test's own
     _forget_mlflow_stores()

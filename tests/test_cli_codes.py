@@ -50,3 +50,29 @@ def test_default_queue_lies_next_to_a_local_store(tmp_path):
     assert resolve_queue("postgresql://h/q") == "postgresql://h/q"
     with pytest.raises(ConfigError, match="required when MLFLOW_TRACKING_URI"):
         resolve_queue(None, "http://tracking:5000")
+
+
+@pytest.mark.parametrize("value", ["0", "two", "-1"])
+def test_bad_workers_variable_is_one_line_and_exit_code_2(tmp_path, value, monkeypatch, capsys):
+    from experiments.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("ACRMDN_WORKERS", value)
+    assert main(["ablation", "--profile", "smoke"]) == 2
+    stderr = capsys.readouterr().err
+    assert stderr.strip() == f"error: ACRMDN_WORKERS={value!r}: expected a whole number of worker processes >= 1"
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_workers_variable_sets_the_default_and_the_flag_wins(monkeypatch):
+    import os
+
+    from experiments.cli import build_parser, load_config
+    from experiments.procs import default_workers
+
+    monkeypatch.setenv("ACRMDN_WORKERS", "3")
+    assert default_workers() == 3
+    monkeypatch.setenv("ACRMDN_WORKERS", "two")  # not read when --workers is given
+    assert load_config(build_parser().parse_args(["ablation", "--profile", "smoke", "--workers", "1"])).workers == 1
+    monkeypatch.delenv("ACRMDN_WORKERS")
+    assert default_workers() == len(os.sched_getaffinity(0))

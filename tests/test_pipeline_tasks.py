@@ -34,7 +34,7 @@ class TasksStore:
 def tasks_store(tmp_path_factory) -> TasksStore:
     store = tmp_path_factory.mktemp("tasks-store")
     abl = run_cli(["ablation", "--profile", "smoke", "--tasks", "circle", "pick-place", "--variants", "ac-lstm-mdn",
-                   "--workers", "2", "--study-name", "tasks", "--set", "per_task.pick-place.data.n_demos=4",
+                   "--workers", "1", "--study-name", "tasks", "--set", "per_task.pick-place.data.n_demos=4",
                    "--set", f"eval.rollouts={ROLLOUTS}"], store, timeout=900)
     assert abl.returncode == 0, abl.stdout + abl.stderr[-3000:]
     sweep = run_cli(["sweep", "--profile", "smoke", "--task", "circle", "--trials", "1", "--workers", "1",
