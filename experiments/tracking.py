@@ -25,6 +25,8 @@ import tenacity
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
+from experiments.schema_template import create_from_template
+
 log = logging.getLogger(__name__)
 
 DEFAULT_DB = "mlflow.db"
@@ -91,6 +93,8 @@ class Client:
             self._client = MlflowClient(tracking_uri=self.uri)
             return
         with schema_lock(db):  # opening a fresh store creates (migrates) its schema: one process at a time
+            if not db.exists():
+                create_from_template(db)  # a copy of an empty store: seconds faster than MLflow's migrations
             self._client = with_retries(MlflowClient)(tracking_uri=self.uri)
             with_retries(self._client.search_experiments)(max_results=1)
 
