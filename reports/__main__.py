@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -127,6 +129,17 @@ def _error(exc: Exception | str) -> int:
     return 2
 
 
+def _memory_scratch(min_free: int = 1 << 30) -> str | None:
+    """/dev/shm when it is a writable tmpfs with room, else None (the default temporary folder): the store
+    that --exports builds is thrown away after rendering, so its thousands of SQLite commits need not wait
+    on the disk (the repository's exports, imported beside a running test suite: 27 s there, 36 s in /tmp)."""
+    shm = "/dev/shm"
+    try:
+        return shm if os.access(shm, os.W_OK) and shutil.disk_usage(shm).free >= min_free else None
+    except OSError:
+        return None
+
+
 def results_main(args: argparse.Namespace) -> int:
     import tempfile
 
@@ -136,7 +149,7 @@ def results_main(args: argparse.Namespace) -> int:
     from reports.studyimport import import_exports
 
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="reports-exports-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="reports-exports-", dir=_memory_scratch()) as tmp:
         try:
             uri = args.tracking_uri
             if args.exports:
