@@ -1,13 +1,13 @@
-"""A study export (reports.export) back into an MLflow store, through MLflow's public client API.
+"""A study export (reports.export) back into an MLflow store, through MLflow's client API.
 
     python -m reports import reports/studies/<slug> [...] [--tracking-uri URI]
 
 The export is validated whole first (its runs.json, and every artifact against its sha256): a corrupt or partial
 export is one line naming what is wrong, and nothing is written. Then the runs are created in the experiment of
 the study's kind (created if missing): the original start times, run names, params, tags, metric histories (steps
-and timestamps), artifacts, status and end time; each child's parent link points to the new parent run, and every
-run keeps its original id in tag `export.run_id` (reports show that id). A run that fails midway deletes the runs
-it created.
+and timestamps; into a SQLite store in bulk: reports.bulk_metrics), artifacts, status and end time; each child's
+parent link points to the new parent run, and every run keeps its original id in tag `export.run_id` (reports
+show that id). A run that fails midway deletes the runs it created.
 
 Importing twice does not duplicate: a study whose parent carries the same export digest (the sha256 of runs.json)
 is skipped; a different study of the same study_name already in the store is an error (exit 2): import it into
@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from experiments.tracking import PARENT_TAG, Client, get_or_create_experiment, sqlite_path
+from reports import bulk_metrics
 from reports.export import FORMAT, RUN_NAME_TAG, RUNS_FILE, ExportError
 from reports.store import SOURCE_RUN_TAG, Store
 
@@ -116,7 +117,8 @@ def _metrics(run: dict) -> list:
     return out
 
 
-def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[str, str], digest: str) -> str:
+def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[str, str], digest: str,
+            bulk_db: Path | None) -> str:
     from mlflow.entities import Param
 
     tags = {**run["tags"], SOURCE_RUN_TAG: run["run_id"]}
@@ -131,8 +133,11 @@ def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[
     for i in range(0, len(params), 100):
         client.log_batch(rid, params=params[i:i + 100])
     metrics = _metrics(run)
-    for i in range(0, len(metrics), BATCH):
-        client.log_batch(rid, metrics=metrics[i:i + BATCH])
+    if bulk_db is not None:
+        bulk_metrics.insert_new_run_metrics(bulk_db, rid, ((m.key, m.value, m.timestamp, m.step) for m in metrics))
+    else:
+        for i in range(0, len(metrics), BATCH):
+            client.log_batch(rid, metrics=metrics[i:i + BATCH])
     for path in sorted(run["artifacts"]):
         parent = str(Path(path).parent)
         client.log_artifact(rid, str(_artifact(folder, run, path)), None if parent == "." else parent)
@@ -156,10 +161,12 @@ def import_study(folder: Path, uri: str, doc: dict, digest: str) -> None:
     """Import one validated export (plan) into the store at `uri` (created if missing)."""
     client = Client(uri)
     exp_id = get_or_create_experiment(client, doc["experiment"])
+    db = sqlite_path(uri)
+    bulk_db = db if db is not None and bulk_metrics.supported(db) else None
     new_ids: dict[str, str] = {}
     try:
         for run in doc["runs"]:
-            _create(client, exp_id, run, folder, new_ids, digest)
+            _create(client, exp_id, run, folder, new_ids, digest, bulk_db)
     except Exception as exc:
         for rid in new_ids.values():  # nothing half-imported: the runs created so far go
             client.delete_run(rid)
