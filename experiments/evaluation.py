@@ -133,8 +133,16 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: Mapping[str, Any], *,
     return metrics, details
 
 
-TIMED_EPISODES = 3  # episodes generated / solved one at a time for the per-trajectory timings
-BATCHED_IK_EPISODES = 10  # episodes in the batched IK timing (bounded: it is a side measurement)
+# The timings are a side measurement: at most TIMED_EPISODES episodes generated / solved one at a time and
+# BATCHED_IK_EPISODES in the batched IK solve, and no more than a tenth / a third of the evaluation's episodes
+# (from 30 episodes on, the bounds; a smoke evaluation of 4 episodes times 1 and 2)
+TIMED_EPISODES = 3
+BATCHED_IK_EPISODES = 10
+
+
+def _timed_counts(n_episodes: int) -> tuple[int, int]:
+    """(episodes timed one at a time, episodes in the batched IK timing) for an evaluation of n_episodes."""
+    return min(TIMED_EPISODES, -(-n_episodes // 10)), min(BATCHED_IK_EPISODES, -(-n_episodes // 3))
 
 
 def _timing(model, task, episodes: list, rollouts, gen_kwargs: dict[str, Any]) -> dict[str, float]:
@@ -142,7 +150,7 @@ def _timing(model, task, episodes: list, rollouts, gen_kwargs: dict[str, Any]) -
     expert on the same episodes (one at a time, and batched where the task has a batched expert)."""
     from stm.rollout import generate
 
-    k = min(TIMED_EPISODES, len(episodes))
+    k, k_batched = _timed_counts(len(episodes))
     out: dict[str, float] = {"n_trajectories": float(len(episodes)), "batch_size": float(len(episodes)),
                              "horizon": float(max(ep.horizon for ep in episodes)),
                              "stm_batched_seconds_per_traj": rollouts.seconds / len(episodes)}
@@ -153,7 +161,7 @@ def _timing(model, task, episodes: list, rollouts, gen_kwargs: dict[str, Any]) -
         for ep in episodes[:k]:
             task.expert_episode(ep)
         out["ik_seconds_per_traj"] = (time.perf_counter() - start) / k
-        batch = episodes[:BATCHED_IK_EPISODES]
+        batch = episodes[:k_batched]
         start = time.perf_counter()
         if task.expert_batch(batch) is not None:  # several episodes in one IK solve
             out["ik_batched_seconds_per_traj"] = (time.perf_counter() - start) / len(batch)
