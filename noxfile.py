@@ -56,17 +56,20 @@ def app(session: nox.Session) -> None:
 
 @nox.session
 def tests(session: nox.Session) -> None:
-    """The test suite (benchmarks, integration and browser checks excluded). With no arguments:
-    coverage, failing under the floor in pyproject.toml. `nox -s tests -- -m "not slow"`: the fast
-    lane (a -m here narrows the default one). Both run on pytest-xdist (`-n auto --dist loadfile`)
-    unless the arguments choose (`-n 0`: one process)."""
+    """The test suite (benchmarks, integration and browser checks excluded). `nox -s tests -- --cov`:
+    with coverage, failing under the floor in pyproject.toml (CI runs it so; the tracing costs ~30 %
+    more CPU). `nox -s tests -- -m "not slow"`: the fast lane (a -m here narrows the default one).
+    All run on pytest-xdist (`-n auto --dist loadfile`) unless the arguments choose (`-n 0`: one process)."""
     _install(session, "[dev]")
     args, marks = list(session.posargs), "not bench and not integration and not browser"
     if "-m" in args[:-1]:  # pytest keeps only the last -m: combine instead of replacing ours
         i = args.index("-m")
         marks = f"({marks}) and ({args.pop(i + 1)})"
         args.pop(i)
-    cov = [] if session.posargs else ["--cov", "--cov-report=term"]
+    cov = []
+    if "--cov" in args:  # moved before an option, so that it never takes a test path as its source
+        args.remove("--cov")
+        cov = ["--cov"] + ([] if any(a.startswith("--cov-report") for a in args) else ["--cov-report=term"])
     # pytest-xdist, one worker a core; a module's tests share a worker (its module fixtures are built once)
     xdist = [] if any(a.startswith(("-n", "--numprocesses", "--dist")) for a in args) else \
         ["-n", "auto", "--dist", "loadfile"]
@@ -74,7 +77,7 @@ def tests(session: nox.Session) -> None:
     if scratch:
         session.log(f"test folders in memory: TMPDIR={scratch}")
         args = ["-o", "tmp_path_retention_count=1", *args]  # the last run's folders only, in RAM
-    session.run("pytest", "-m", marks, *xdist, *cov, *args, env=env)
+    session.run("pytest", *cov, "-m", marks, *xdist, *args, env=env)
 
 
 def _memory_tmpdir(min_free: int = 4 << 30) -> tuple[str | None, dict[str, str]]:
