@@ -31,6 +31,8 @@ Placeholders of the template:
                              train_time, training_curves, tip_paths, changing_goal)
     {{ success_table(study="NAME") }}, {{ figure("NAME", study="NAME") }}, ...: the same of another study
                              (study_name or parent run id) than the --ablation one; provenance lists them all
+    {{ data_scaling("TASK", "STUDY", ...) }}  success vs number of demonstrations of TASK's models across
+                             ablation studies that differ in it: a table and a figure (reports.data_scaling)
 
 New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder(results, study) returning a
 Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
@@ -56,7 +58,7 @@ from pathlib import Path
 import pandas as pd
 
 from envs.fileio import atomic_write_text
-from reports import figures, milestones, multimodal, paper, sweeps, tables, trajectories
+from reports import data_scaling, figures, milestones, multimodal, paper, sweeps, tables, trajectories
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
@@ -104,6 +106,7 @@ class Results:
         """The default ablation study if the template uses it, the ablation studies it uses (in order) and the
         sweep studies it uses (all selected ones when the template names none specifically)."""
         abl = [self.need_ablation(p) for p in placeholders if is_ablation_kind(p.kind)]
+        abl += [self.named[name] for p in placeholders if p.kind == "data_scaling" for name in p.args[1:]]
         default = self.ablation if any(is_ablation_kind(p.kind) and p.study is None for p in placeholders) else None
         abl = list({s.run_id: s for s in abl}.values())
         swp = list(dict.fromkeys(self.sweep_of(p).run_id for p in placeholders if p.kind.startswith("sweep_")))
@@ -132,7 +135,10 @@ class Results:
         return self.summary("success", study) if study.kind == "ablation" else None
 
     # ------------------------------------------------------------------ figures
-    def figure(self, study: Study, name: str, out_name: str, build: Callable[[Path], FigureResult]) -> str:
+    def figure(self, study: Study, name: str, out_name: str, build: Callable[[Path], FigureResult],
+               label: str | None = None) -> str:
+        """The figure's Markdown link (or its gap line), labelled with the study's name unless `label`."""
+        label = study.name if label is None else label
         folder = Path(self._tmp.name) / study.slug
         dst = self.figures_dir / f"{out_name}.png"
         try:
@@ -144,10 +150,10 @@ class Results:
         png = next((p for p in res.paths if p.suffix == ".png"), None)
         if res.gap or png is None:
             dst.unlink(missing_ok=True)  # our own output name: no stale figure beside the gap
-            return f"> **figure unavailable: {name}** ({study.name}): {res.gap or 'no PNG written'}\n"
+            return f"> **figure unavailable: {name}** ({label}): {res.gap or 'no PNG written'}\n"
         small_png(png, dst)
         link = Path(os.path.relpath(dst, self.results_out.parent)).as_posix()
-        text = f"![{res.title} ({study.name})]({link})\n"
+        text = f"![{res.title} ({label})]({link})\n"
         if res.partial:
             text += f"\n*Panels without data: {'; '.join(res.partial)}.*\n"
         return text
@@ -165,6 +171,21 @@ class Results:
         return "\n".join(self.figure(study, n, f"{task}_{n}", lambda folder, n=n: getattr(sweeps, n)(study, folder))
                          for n in names)
 
+    def data_scaling(self, ph: Placeholder) -> str:
+        task, studies = ph.args[0], [self.named[name] for name in ph.args[1:]]
+        try:
+            cells = data_scaling.scaling_cells(studies, task)
+        except data_scaling.DataScalingError as exc:
+            raise ResultsError(f"{ph}: {exc}") from None
+        table = data_scaling.scaling_table(cells)
+        text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
+        text += ("\n- Mean success over seeds (seed-aware 95 % interval); studies: "
+                 f"{', '.join(s.name for s in studies)}.\n\n")
+        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", task)
+        return text + self.figure(studies[0], data_scaling.NAME, f"{safe}_data_scaling",
+                                  lambda folder: data_scaling.scaling_figure(cells, task, folder),
+                                  label=f"{task}: {len(studies)} studies")
+
     # ------------------------------------------------------------------- render
     def render_one(self, ph: Placeholder, placeholders: list[Placeholder]) -> str:
         if ph.kind == "provenance":
@@ -178,6 +199,8 @@ class Results:
             return sweeps.sweep_table(self.sweep_of(ph)).to_markdown()
         if ph.kind == "sweep_figure":
             return self.sweep_figures(ph)
+        if ph.kind == "data_scaling":
+            return self.data_scaling(ph)
         return self.ablation_figure(ph)
 
     def render(self, template: str) -> str:
@@ -276,12 +299,16 @@ NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milest
 
 
 def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dict[str, Study]:
-    """The studies the template names (study="NAME"), each checked to be of a NAMED_KINDS kind in the store."""
+    """The studies the template names (study="NAME", and data_scaling's), each checked to be of a NAMED_KINDS kind
+    in the store."""
     named: dict[str, Study] = {}
     for ph in placeholders:
-        if ph.study is not None and ph.study not in named:
+        names = ph.args[1:] if ph.kind == "data_scaling" else (ph.study,) if ph.study is not None else ()
+        for name in names:
+            if name in named:
+                continue
             try:
-                named[ph.study] = selection.pick(ph.study, NAMED_KINDS)
+                named[name] = selection.pick(name, NAMED_KINDS)
             except StoreError as exc:
                 raise ResultsError(f"{ph}: {exc}") from None
     return named

@@ -3,6 +3,7 @@ before any study is read so that a typo is one line naming it (with its line), n
 
     {{ provenance }}  {{ command }}  {{ success_table }}  {{ circle_table }}  {{ train_time_table }}
     {{ figure("NAME") }}  {{ sweep_table("TASK") }}  {{ sweep_figure("TASK") }}  {{ sweep_figure("TASK", "NAME") }}
+    {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}
 
 The ablation tables and figures take an optional study="NAME" (a study_name or parent run id), e.g.
 {{ success_table(study="multimodal") }} or {{ figure("tip_paths", study="multimodal") }}; without it they show
@@ -17,7 +18,8 @@ from dataclasses import dataclass
 from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 
 FIXED = ("provenance", "command")
-WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2)}  # name -> (min, max) arguments
+# name -> (min, max) arguments; data_scaling: a training task, then the studies (reports.data_scaling)
+WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), "data_scaling": (2, 12)}
 SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 STUDY = "study"  # the keyword that picks an ablation-kind placeholder's study
 
@@ -64,7 +66,8 @@ class Vocabulary:
     @property
     def known(self) -> str:
         return ", ".join([*(f"{{{{ {k} }}}}" for k in (*FIXED, *self.tables)), '{{ figure("NAME") }}',
-                          '{{ sweep_table("TASK") }}', '{{ sweep_figure("TASK"[, "NAME"]) }}'])
+                          '{{ sweep_table("TASK") }}', '{{ sweep_figure("TASK"[, "NAME"]) }}',
+                          '{{ data_scaling("TASK", "STUDY", ...) }}'])
 
 
 def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:

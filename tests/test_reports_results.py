@@ -182,6 +182,8 @@ def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypa
     ('\n{{ sweep_table("reacher", study="x") }}', "sweep_table(...) (line 2) takes no keyword"),
     ('{{ figure("circles", seed="1") }}', 'figure(...) (line 1) takes only study="NAME"'),
     ("{{ figure }}", "needs its argument"),
+    ('{{ data_scaling("reacher") }}', 'data_scaling takes 2 or 12 argument(s)'),
+    ('{{ data_scaling("reacher", "nope") }}', "unknown study 'nope'"),
     ("{{figure:success_bars}}", "template syntax error (line 1)"),
 ])
 def test_bad_template_is_a_one_line_error_and_writes_nothing(store, tmp_path, capsys, template, message):

@@ -1,0 +1,100 @@
+"""Success vs number of demonstrations, across studies that differ only in it (issue 16's data-scaling figure):
+{{ data_scaling("TASK", "STUDY", "STUDY", ...) }} in a RESULTS template. Each study contributes its finished
+runs of training task TASK, at the number of demonstrations they trained on (their `data.n_demos` param, else
+the task's default); the table and the figure give, per evaluated task and variant, the mean success over seeds
+with the seed-aware 95 % interval (experiments.stats.success_cells), as every success table does."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from experiments.stats import interval, pct, success_cells
+from reports import paper
+from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
+from reports.store import Study
+
+NAME, TITLE = "data_scaling", "Success vs number of demonstrations"
+N_DEMOS = "params.data.n_demos"
+
+
+class DataScalingError(ValueError):
+    """The named studies cannot make one curve (two at the same number of demonstrations)."""
+
+
+def demos_of(study: Study, task: str) -> int | None:
+    """The number of demonstrations the study's finished runs of `task` trained on; None without such runs."""
+    runs = study.ok[study.ok["task"] == task]
+    if runs.empty:
+        return None
+    logged = runs[N_DEMOS].dropna().astype(int).unique() if N_DEMOS in runs else []
+    if len(logged) > 1:
+        raise DataScalingError(f"study {study.name!r}: runs of {task} trained on {sorted(logged)} demonstrations")
+    if len(logged):
+        return int(logged[0])
+    from envs.tasks import task_class  # the task's default (imported only here: it pulls in torch and pybullet)
+
+    return int(task_class(task)().n_demos)
+
+
+def scaling_cells(studies: list[Study], task: str) -> pd.DataFrame:
+    """One row per (number of demonstrations, variant, evaluated task): success_cells' columns plus `n_demos`
+    and `study`; studies without finished runs of `task` are left out."""
+    frames, seen = [], {}
+    for study in studies:
+        n = demos_of(study, task)
+        if n is None:
+            continue
+        if n in seen:
+            raise DataScalingError(f"studies {seen[n]!r} and {study.name!r} both trained {task} on {n} demonstrations")
+        seen[n] = study.name
+        evals = study.eval_metrics()
+        evals = evals[(evals["status"] == "FINISHED") & (evals["task"] == task)]
+        frames.append(success_cells(evals, study.variants).assign(n_demos=n, study=study.name))
+    cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    return cells.sort_values(["eval_task", "variant", "n_demos"], kind="stable") if not cells.empty else cells
+
+
+def scaling_table(cells: pd.DataFrame) -> pd.DataFrame:
+    """Rows (evaluated task, variant), one column per number of demonstrations: 'mean (seed-aware low-high)'."""
+    if cells.empty:
+        return pd.DataFrame()
+    text = [f"{pct(m)} ({interval(lo, hi)})" if pd.notna(lo) else pct(m)
+            for m, lo, hi in zip(cells["mean"], cells["boot_low"], cells["boot_high"], strict=True)]
+    wide = cells.assign(text=text, task=cells["eval_task"].map(paper.task_label),
+                        variant=cells["variant"].map(paper.variant_label))
+    wide = wide.pivot_table(index=["task", "variant"], columns="n_demos", values="text", aggfunc="first", sort=False)
+    wide.columns = [f"{n} demos" for n in wide.columns]
+    return wide.fillna("–").reset_index()
+
+
+def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
+    """One panel per evaluated task: success vs demonstrations (log axis), one line per variant, the seed-aware
+    95 % interval as a band."""
+    if cells.empty:
+        return gap(NAME, TITLE, f"no finished runs of {task} in the named studies")
+    tasks = list(dict.fromkeys(cells["eval_task"]))
+    variants = list(dict.fromkeys(cells["variant"]))
+    fig, axes = panel_grid(len(tasks), 4.2, 3.2)
+    for ax, eval_task in zip(axes.flat, tasks, strict=False):
+        for variant in variants:
+            got = cells[(cells["eval_task"] == eval_task) & (cells["variant"] == variant)]
+            if got.empty:
+                continue
+            color = variant_color(variant, variants)
+            ax.plot(got["n_demos"], 100 * got["mean"], "o-", color=color, ms=3, label=paper.variant_label(variant))
+            ax.fill_between(got["n_demos"], 100 * got["boot_low"], 100 * got["boot_high"], color=color, alpha=0.15)
+        ax.set_xscale("log")
+        ax.set_xticks(sorted(cells["n_demos"].unique()), [str(n) for n in sorted(cells["n_demos"].unique())])
+        ax.minorticks_off()
+        ax.set_title(paper.task_label(eval_task))
+        ax.set_xlabel("demonstrations")
+        ax.set_ylabel("success (%)")
+        ax.set_ylim(-3, 103)
+        ax.grid(alpha=0.3)
+    axes.flat[0].legend(loc="best", fontsize=8)
+    fig.suptitle(f"{TITLE} ({task} models; mean over seeds, band: seed-aware 95 %)")
+    out = save(fig, folder, NAME, TITLE)
+    plt.close(fig)
+    return out

@@ -1,0 +1,82 @@
+"""{{ data_scaling(...) }} (reports.data_scaling): success vs number of demonstrations across real studies: two
+smoke ablations of reacher's LSTM, on 4 and 6 demonstrations, rendered by the RESULTS template as one curve."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+from cli_helpers import run_cli
+from mlflow import MlflowClient
+
+from experiments.stats import pct
+from reports.__main__ import main
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> Path:
+    store = tmp_path_factory.mktemp("scaling")
+    for n in (6, 4):
+        proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name",
+                        f"demos{n}", "--set", f"per_task.reacher.data.n_demos={n}", "--set", "eval.rollouts=2",
+                        "--set", "eval.figures=0"], store)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return store
+
+
+def _render(store: Path, out: Path, template: str) -> int:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "template.md").write_text(template)
+    return main(["--results", "--tracking-uri", f"sqlite:///{store / 'mlflow.db'}", "--template",
+                 str(out / "template.md"), "--results-out", str(out / "RESULTS.md"), "--figures-dir",
+                 str(out / "figures")])
+
+
+def _success(store: Path, study: str, task: str) -> float:
+    """The evaluated task's success rate logged by the study's one reacher run."""
+    client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
+    runs = client.search_runs([e.experiment_id for e in client.search_experiments()],
+                              f"tags.study_name = '{study}' and tags.task = 'reacher'")
+    (run,) = [r for r in runs if f"{task}/success_rate" in r.data.metrics]
+    return run.data.metrics[f"{task}/success_rate"]
+
+
+def test_one_curve_from_two_studies(store, tmp_path):
+    assert _render(store, tmp_path, '{{ provenance }}\n\n{{ data_scaling("reacher", "demos6", "demos4") }}\n') == 0
+    text = (tmp_path / "RESULTS.md").read_text()
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| task"))
+    table = [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines[start:]
+             if line.startswith("|") and "---" not in line]
+    assert table[0] == ["task", "variant", "4 demos", "6 demos"]  # sorted by the number of demonstrations
+    rows = {(c[0], c[1]): c[2:] for c in table[1:]}
+    assert set(rows) == {("reacher", "LSTM"), ("changing-goal reacher", "LSTM")}
+    for task, label in (("reacher", "reacher"), ("reacher-changing-goal", "changing-goal reacher")):
+        # one seed each: the mean is that run's rate, and one seed has no seed-aware interval
+        assert rows[(label, "LSTM")] == [pct(_success(store, f"demos{n}", task)) for n in (4, 6)]
+    assert "studies: demos6, demos4" in text
+    link = re.search(r"!\[Success vs number of demonstrations \(reacher: 2 studies\)\]\((figures/[^)]+\.png)\)", text)
+    assert link and (tmp_path / link.group(1)).stat().st_size > 0
+    assert "demos4" in text.split("| task")[0] and "demos6" in text.split("| task")[0]  # provenance lists both
+
+
+def test_each_study_sits_at_its_own_number_of_demonstrations(store):
+    from reports.data_scaling import scaling_cells
+    from reports.selection import Selection
+    from reports.store import Store
+
+    selection = Selection(Store(f"sqlite:///{store / 'mlflow.db'}"))
+    cells = scaling_cells([selection.pick(name, ("ablation",)) for name in ("demos6", "demos4")], "reacher")
+    assert sorted(set(zip(cells["n_demos"], cells["study"], strict=True))) == [(4, "demos4"), (6, "demos6")]
+    assert set(cells["eval_task"]) == {"reacher", "reacher-changing-goal"} and set(cells["n"]) == {2}
+    assert scaling_cells([selection.pick("demos4", ("ablation",))], "circle").empty  # no runs of that task
+
+
+def test_two_studies_at_one_count_are_one_line(store, tmp_path, capsys):
+    assert _render(store, tmp_path, '{{ data_scaling("reacher", "demos4", "demos4") }}\n') == 2
+    err = capsys.readouterr().err
+    assert "both trained reacher on 4 demonstrations" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "RESULTS.md").exists()
