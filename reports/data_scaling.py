@@ -1,8 +1,8 @@
 """Success vs number of demonstrations, across studies that differ only in it (issue 16's data-scaling figure):
 {{ data_scaling("TASK", "STUDY", "STUDY", ...) }} in a RESULTS template. Each study contributes its finished
 runs of training task TASK, at the number of demonstrations they trained on (their `data.n_demos` param, else
-the task's default); the table and the figure give, per evaluated task and variant, the mean success over seeds
-with the seed-aware 95 % interval (experiments.stats.success_cells), as every success table does."""
+the task's default); the table gives, per evaluated task, variant and number of demonstrations, the statistics
+of every success table (experiments.stats), the figure the mean over seeds with the seed-aware 95 % interval."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from experiments.stats import interval, pct, success_cells
+from experiments.stats import success_cells, success_table
 from reports import paper
 from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
 from reports.store import Study
@@ -53,20 +53,21 @@ def scaling_cells(studies: list[Study], task: str) -> pd.DataFrame:
         evals = evals[(evals["status"] == "FINISHED") & (evals["task"] == task)]
         frames.append(success_cells(evals, study.variants).assign(n_demos=n, study=study.name))
     cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    return cells.sort_values(["eval_task", "variant", "n_demos"], kind="stable") if not cells.empty else cells
+    if cells.empty:
+        return cells
+    order = {v: i for i, v in enumerate(dict.fromkeys(v for s in studies for v in s.variants))}
+    cells = cells.assign(_v=cells["variant"].map(order))
+    return cells.sort_values(["eval_task", "_v", "n_demos"], kind="stable").drop(columns="_v").reset_index(drop=True)
 
 
 def scaling_table(cells: pd.DataFrame) -> pd.DataFrame:
-    """Rows (evaluated task, variant), one column per number of demonstrations: 'mean (seed-aware low-high)'."""
+    """THE success table (experiments.stats.success_table: per seed, Wilson and seed-aware intervals) with the
+    number of demonstrations after the variant: one row per (evaluated task, variant, demonstrations)."""
     if cells.empty:
         return pd.DataFrame()
-    text = [f"{pct(m)} ({interval(lo, hi)})" if pd.notna(lo) else pct(m)
-            for m, lo, hi in zip(cells["mean"], cells["boot_low"], cells["boot_high"], strict=True)]
-    wide = cells.assign(text=text, task=cells["eval_task"].map(paper.task_label),
-                        variant=cells["variant"].map(paper.variant_label))
-    wide = wide.pivot_table(index=["task", "variant"], columns="n_demos", values="text", aggfunc="first", sort=False)
-    wide.columns = [f"{n} demos" for n in wide.columns]
-    return wide.fillna("–").reset_index()
+    table = success_table(cells, paper.variant_label, paper.task_label)
+    table.insert(2, "demos", [str(n) for n in cells["n_demos"]])
+    return table
 
 
 def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:

@@ -58,6 +58,7 @@ from pathlib import Path
 import pandas as pd
 
 from envs.fileio import atomic_write_text
+from experiments.stats import SUCCESS_NOTE
 from reports import data_scaling, figures, milestones, multimodal, paper, sweeps, tables, trajectories
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
@@ -179,8 +180,8 @@ class Results:
             raise ResultsError(f"{ph}: {exc}") from None
         table = data_scaling.scaling_table(cells)
         text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
-        text += ("\n- Mean success over seeds (seed-aware 95 % interval); studies: "
-                 f"{', '.join(s.name for s in studies)}.\n\n")
+        text += (f"\n- Studies: {', '.join(s.name for s in studies)}; demos: the demonstrations the {task} model "
+                 f"trained on; {SUCCESS_NOTE}\n\n")
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", task)
         return text + self.figure(studies[0], data_scaling.NAME, f"{safe}_data_scaling",
                                   lambda folder: data_scaling.scaling_figure(cells, task, folder),

@@ -51,13 +51,18 @@ def test_one_curve_from_two_studies(store, tmp_path):
     start = next(i for i, line in enumerate(lines) if line.startswith("| task"))
     table = [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines[start:]
              if line.startswith("|") and "---" not in line]
-    assert table[0] == ["task", "variant", "4 demos", "6 demos"]  # sorted by the number of demonstrations
-    rows = {(c[0], c[1]): c[2:] for c in table[1:]}
-    assert set(rows) == {("reacher", "LSTM"), ("changing-goal reacher", "LSTM")}
+    assert table[0] == ["task", "variant", "demos", "success", "per seed", "Wilson 95%", "seed-aware 95%", "rollouts",
+                        "seeds"]
+    rows = {tuple(c[:3]): c[3:] for c in table[1:]}
+    assert list(rows) == [("reacher", "LSTM", "4"), ("reacher", "LSTM", "6"), ("changing-goal reacher", "LSTM", "4"),
+                          ("changing-goal reacher", "LSTM", "6")]  # by task, variant, then demonstrations
     for task, label in (("reacher", "reacher"), ("reacher-changing-goal", "changing-goal reacher")):
-        # one seed each: the mean is that run's rate, and one seed has no seed-aware interval
-        assert rows[(label, "LSTM")] == [pct(_success(store, f"demos{n}", task)) for n in (4, 6)]
-    assert "studies: demos6, demos4" in text
+        for n in (4, 6):
+            rate = pct(_success(store, f"demos{n}", task))
+            # one seed: its rate is the mean; no seed-aware interval; 2 rollouts
+            assert rows[(label, "LSTM", str(n))][:2] == [rate, rate]
+            assert rows[(label, "LSTM", str(n))][3:] == ["–", "2", "1"]
+    assert "Studies: demos6, demos4" in text
     link = re.search(r"!\[Success vs number of demonstrations \(reacher: 2 studies\)\]\((figures/[^)]+\.png)\)", text)
     assert link and (tmp_path / link.group(1)).stat().st_size > 0
     assert "demos4" in text.split("| task")[0] and "demos6" in text.split("| task")[0]  # provenance lists both
