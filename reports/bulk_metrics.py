@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import sqlite3
 from collections.abc import Iterable
+from contextlib import closing
 from pathlib import Path
 
 METRICS = ("key", "value", "timestamp", "run_uuid", "step", "is_nan")
@@ -30,7 +31,7 @@ def supported(db: Path) -> bool:
     if not db.is_file():  # connecting would create an empty file
         return False
     try:
-        with sqlite3.connect(db, timeout=30) as con:
+        with closing(sqlite3.connect(db, timeout=30)) as con:
             return _columns(con, "metrics") == set(METRICS) and _columns(con, "latest_metrics") == set(LATEST)
     except sqlite3.Error:
         return False
@@ -58,9 +59,8 @@ def insert_new_run_metrics(db: Path, run_id: str, points: Iterable[tuple[str, fl
         rank = (row[4], row[2], stored)
         if key not in latest or rank > latest[key][0]:
             latest[key] = (rank, is_nan)
-    with sqlite3.connect(db, timeout=30) as con:  # commits on leaving, rolls back on an error
+    with closing(sqlite3.connect(db, timeout=30)) as con, con:  # the inner `con`: commit, or roll back on an error
         con.executemany(f"INSERT INTO metrics ({', '.join(METRICS)}) VALUES (?, ?, ?, ?, ?, ?)", rows)
         con.executemany(f"INSERT INTO latest_metrics ({', '.join(LATEST)}) VALUES (?, ?, ?, ?, ?, ?)",
                         [(key, value, ts, step, is_nan, run_id)
                          for key, ((step, ts, value), is_nan) in latest.items()])
-    con.close()

@@ -77,6 +77,7 @@ def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult
         return gap(NAME, TITLE, f"no finished runs of {task} in the named studies")
     tasks = list(dict.fromkeys(cells["eval_task"]))
     variants = list(dict.fromkeys(cells["variant"]))
+    counts = sorted(cells["n_demos"].unique())
     fig, axes = panel_grid(len(tasks), 4.2, 3.2)
     for ax, eval_task in zip(axes.flat, tasks, strict=False):
         for variant in variants:
@@ -87,7 +88,7 @@ def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult
             ax.plot(got["n_demos"], 100 * got["mean"], "o-", color=color, ms=3, label=paper.variant_label(variant))
             ax.fill_between(got["n_demos"], 100 * got["boot_low"], 100 * got["boot_high"], color=color, alpha=0.15)
         ax.set_xscale("log")
-        ax.set_xticks(sorted(cells["n_demos"].unique()), [str(n) for n in sorted(cells["n_demos"].unique())])
+        ax.set_xticks(counts, [str(n) for n in counts])
         ax.minorticks_off()
         ax.set_title(paper.task_label(eval_task))
         ax.set_xlabel("demonstrations")

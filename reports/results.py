@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 import shlex
 import tempfile
 from collections.abc import Callable
@@ -64,7 +63,7 @@ from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
 from reports.selection import Selection, select_studies
-from reports.store import DEFAULT_TRACKING_URI, Store, StoreError, Study
+from reports.store import DEFAULT_TRACKING_URI, Store, StoreError, Study, file_safe
 from reports.sweeps import sweep_task
 from reports.tables import Table
 from reports.template import SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
@@ -107,7 +106,7 @@ class Results:
         """The default ablation study if the template uses it, the ablation studies it uses (in order) and the
         sweep studies it uses (all selected ones when the template names none specifically)."""
         abl = [self.need_ablation(p) for p in placeholders if is_ablation_kind(p.kind)]
-        abl += [self.named[name] for p in placeholders if p.kind == "data_scaling" for name in p.args[1:]]
+        abl += [self.named[name] for p in placeholders if p.kind == "data_scaling" for name in p.studies]
         default = self.ablation if any(is_ablation_kind(p.kind) and p.study is None for p in placeholders) else None
         abl = list({s.run_id: s for s in abl}.values())
         swp = list(dict.fromkeys(self.sweep_of(p).run_id for p in placeholders if p.kind.startswith("sweep_")))
@@ -168,12 +167,12 @@ class Results:
     def sweep_figures(self, ph: Placeholder) -> str:
         study = self.sweep_of(ph)
         names = list(ph.args[1:]) or list(SWEEP_FIGURES)
-        task = re.sub(r"[^A-Za-z0-9_.-]+", "_", sweep_task(study))
+        task = file_safe(sweep_task(study))
         return "\n".join(self.figure(study, n, f"{task}_{n}", lambda folder, n=n: getattr(sweeps, n)(study, folder))
                          for n in names)
 
     def data_scaling(self, ph: Placeholder) -> str:
-        task, studies = ph.args[0], [self.named[name] for name in ph.args[1:]]
+        task, studies = ph.arg, [self.named[name] for name in ph.studies]
         try:
             cells = data_scaling.scaling_cells(studies, task)
         except data_scaling.DataScalingError as exc:
@@ -182,8 +181,7 @@ class Results:
         text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
         text += (f"\n- Studies: {', '.join(s.name for s in studies)}; demos: the demonstrations the {task} model "
                  f"trained on; {SUCCESS_NOTE}\n\n")
-        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", task)
-        return text + self.figure(studies[0], data_scaling.NAME, f"{safe}_data_scaling",
+        return text + self.figure(studies[0], data_scaling.NAME, f"{file_safe(task)}_data_scaling",
                                   lambda folder: data_scaling.scaling_figure(cells, task, folder),
                                   label=f"{task}: {len(studies)} studies")
 
@@ -304,8 +302,7 @@ def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dic
     in the store."""
     named: dict[str, Study] = {}
     for ph in placeholders:
-        names = ph.args[1:] if ph.kind == "data_scaling" else (ph.study,) if ph.study is not None else ()
-        for name in names:
+        for name in ph.studies:
             if name in named:
                 continue
             try:

@@ -58,6 +58,11 @@ class StoreError(Exception):
     """A problem with the store or the selection, reported as one line (exit code 2)."""
 
 
+def file_safe(name: str) -> str:
+    """`name` as (part of) a file or folder name."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
 @dataclass
 class Study:
     """One study: its parent run and its children as a tidy frame (one row per child run)."""
@@ -96,7 +101,7 @@ class Study:
     @property
     def slug(self) -> str:
         """Folder name for this study's outputs."""
-        return re.sub(r"[^A-Za-z0-9_.-]+", "_", self.name)
+        return file_safe(self.name)
 
     @property
     def ok(self) -> pd.DataFrame:

@@ -105,21 +105,20 @@ def _existing(uri: str, experiment: str, study_name: str) -> dict[str, Any] | No
     return hit.iloc[0].to_dict() if len(hit) else None
 
 
-def _metrics(run: dict) -> list:
-    from mlflow.entities import Metric
-
+def _points(run: dict) -> list[tuple[str, float, int, int]]:
+    """The run's metric points (key, value, timestamp, step): its histories, and a latest value without one."""
     out = []
     for key, hist in sorted(run["histories"].items()):
-        out += [Metric(key, float(v), int(ts), int(step)) for step, ts, v in hist["points"]]
+        out += [(key, float(v), int(ts), int(step)) for step, ts, v in hist["points"]]
     for key, value in sorted(run["metrics"].items()):  # a latest value without history (not written by MLflow)
         if key not in run["histories"]:
-            out.append(Metric(key, float(value), int(run["end_time"] or run["start_time"]), 0))
+            out.append((key, float(value), int(run["end_time"] or run["start_time"]), 0))
     return out
 
 
 def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[str, str], digest: str,
             bulk_db: Path | None) -> str:
-    from mlflow.entities import Param
+    from mlflow.entities import Metric, Param
 
     tags = {**run["tags"], SOURCE_RUN_TAG: run["run_id"]}
     if run["parent_run_id"] is None:
@@ -132,10 +131,11 @@ def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[
     params = [Param(k, str(v)) for k, v in sorted(run["params"].items())]
     for i in range(0, len(params), 100):
         client.log_batch(rid, params=params[i:i + 100])
-    metrics = _metrics(run)
+    points = _points(run)
     if bulk_db is not None:
-        bulk_metrics.insert_new_run_metrics(bulk_db, rid, ((m.key, m.value, m.timestamp, m.step) for m in metrics))
+        bulk_metrics.insert_new_run_metrics(bulk_db, rid, points)
     else:
+        metrics = [Metric(*point) for point in points]
         for i in range(0, len(metrics), BATCH):
             client.log_batch(rid, metrics=metrics[i:i + BATCH])
     for path in sorted(run["artifacts"]):

@@ -48,6 +48,13 @@ class Placeholder:
         return self.args[0] if self.args else None
 
     @property
+    def studies(self) -> tuple[str, ...]:
+        """The studies it names: data_scaling's after its task, else its study="NAME" if any."""
+        if self.kind == "data_scaling":
+            return self.args[1:]
+        return () if self.study is None else (self.study,)
+
+    @property
     def key(self) -> tuple:
         """Equal for the same placeholder written twice (drawn once)."""
         return self.kind, self.args, self.study

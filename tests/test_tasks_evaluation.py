@@ -28,13 +28,13 @@ def test_episode_seed_and_feedback_rules():
     assert [episode_seed(10_000, s) for s in range(3)] == [10_000, 10_001, 10_002]
     assert rollout_feedback("component_mean", "sample") == "sample"
     assert rollout_feedback("mixture_mean", "component_mean") == "mixture_mean"
+    assert rollout_feedback("component_mean", None) == "component_mean"
 
 
 def test_timings_take_a_bounded_share_of_the_episodes():
     # (one at a time, batched IK): at most a tenth / a third of them, 3 / 10 from 30 episodes on
     assert [_timed_counts(n) for n in (1, 4, 12, 30, 40, 100)] == [(1, 1), (1, 2), (2, 4), (3, 10), (3, 10),
                                                                    (3, 10)]
-    assert rollout_feedback("component_mean", None) == "component_mean"
 
 
 def test_each_training_seed_is_evaluated_on_its_own_episodes_and_rollouts_keep_the_seed():
