@@ -10,9 +10,9 @@ from envs.datasets import load_demos
 from envs.kinematics import default_kinematics, tip_position_np
 from envs.robot import LIMITS, NEUTRAL_Q
 from envs.sim import Scene
-from envs.tasks import Episode, get_task
+from envs.tasks import Episode, get_task, task_class
 from envs.tasks.expert import velocity_ratio
-from envs.tasks.reacher import GOAL_BOX, START_BOX, START_JOINT_RANGE, SUCCESS_RADIUS
+from envs.tasks.reacher import GOAL_BOX, MIN_DISTANCE, START_BOX, START_JOINT_RANGE, SUCCESS_RADIUS, SWITCH_HOLD
 
 
 @pytest.fixture(scope="module")
@@ -157,3 +157,32 @@ def test_changing_goal_expert_adapts_and_holding_the_first_goal_fails():
     first = task.expert_trajectory(ep.q0, np.asarray(ep.info["goal"]))
     hold = np.concatenate([first, np.repeat(first[-1:], 106 - len(first), axis=0)])
     assert task.evaluate(hold, None, ep)["success"] == 0.0
+
+
+@pytest.mark.slow
+def test_goal_switch_demonstrations_replan_to_the_new_goal():
+    """The goal_switches lever: each switched demo holds its first goal up to a step in the documented window,
+    then the new goal (MIN_DISTANCE away) to its end, which the expert reaches within the joint speed limits."""
+    task = get_task("reacher", n_demos=4, goal_switches=1.0)
+    demos = task.demos(3)
+    assert demos.meta["goal_switches"] == 4
+    for i, n in enumerate(demos.lengths):
+        psi = demos.psi[i, : n + 1]
+        k = int(np.flatnonzero((psi != psi[0]).any(axis=1))[0])
+        assert task.min_steps // 2 <= k <= task.max_steps + SWITCH_HOLD
+        assert np.all(psi[k:] == psi[-1]) and np.linalg.norm(psi[-1] - psi[0]) >= MIN_DISTANCE
+        assert task.min_steps <= n - k <= task.max_steps  # the second reach is a whole expert reach
+        assert velocity_ratio(demos.q[i, : n + 1], task.step_seconds) <= 1.0
+        assert np.linalg.norm(tip_position_np(demos.q[i, n]) - psi[-1]) < SUCCESS_RADIUS
+    half = get_task("reacher", n_demos=8, goal_switches=0.5).demos(3)
+    assert 0 < half.meta["goal_switches"] < 8
+
+
+def test_goal_switches_is_a_cache_key_only_when_used_and_checked():
+    assert "goal_switches" not in get_task("reacher").config()
+    assert get_task("reacher", goal_switches=0.0).config() == get_task("reacher").config()
+    assert get_task("reacher", goal_switches=0.5).config()["goal_switches"] == 0.5
+    with pytest.raises(ValueError, match="goal_switches must be a fraction"):
+        get_task("reacher", goal_switches=1.5)
+    # a training-data lever: the changing-goal evaluation of such a model keeps the paper's episodes
+    assert task_class("reacher-changing-goal").for_evaluation({"goal_switches": 0.5}, {}).goal_switches == 0.0

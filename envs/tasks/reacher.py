@@ -17,6 +17,12 @@ the table spans x 0.30..1.00, y -0.60..0.60):
 reacher-changing-goal: the same start/goal distribution, a rollout of 1.5x the longest
 demonstration (105 steps) whose goal switches to `new_goal` at step `switch_step` (52);
 success is judged against the new goal. The model is trained on the reacher demos.
+
+goal_switches (a training-data lever, not the paper's protocol; 0 by default): that fraction of the
+demonstrations switches goal on the way, as the changing-goal episodes do: at a step k drawn uniformly from
+half-way along the first reach to SWITCH_HOLD steps after it ends (the evaluation switches at step 52 of
+reaches of 50-70 steps), psi becomes a new goal at least MIN_DISTANCE from the first, and the expert replans
+a straight line to it from where the arm is at k. Such a demonstration lasts k + (50-70) steps.
 """
 
 from __future__ import annotations
@@ -51,6 +57,7 @@ MIN_DISTANCE = 0.10  # m between the start tip and the goal (and between the two
 SUCCESS_RADIUS = 0.05  # m: the reacher's success criterion, defined here only (others import it)
 STEP_SECONDS = 0.1
 DISTANCE_FOR_MAX_STEPS = 0.6  # m: paths this long or longer get the most steps
+SWITCH_HOLD = 10  # steps: a goal-switch demonstration may switch this long after its first reach ends
 
 
 def _sample_box(rng: np.random.Generator, box, n: int) -> np.ndarray:
@@ -82,17 +89,21 @@ class Reacher(Task):
     )
 
     def __init__(self, n_demos: int = 45, min_steps: int = 50, max_steps: int = 70,
-                 start_joint_range: float = START_JOINT_RANGE):
+                 start_joint_range: float = START_JOINT_RANGE, goal_switches: float = 0.0):
         """start_joint_range: half-width (rad) of the uniform start range around NEUTRAL_Q;
-        it is part of config(), so another value gets its own dataset cache entry."""
+        it is part of config(), so another value gets its own dataset cache entry.
+        goal_switches: the fraction of demonstrations whose goal switches on the way (module docstring)."""
         if not 1 <= min_steps <= max_steps:
             raise ValueError(f"need 1 <= min_steps <= max_steps, got {min_steps}, {max_steps}")
         if n_demos < 1:
             raise ValueError(f"n_demos must be >= 1, got {n_demos}")
         if not 0.0 <= start_joint_range <= np.pi:
             raise ValueError(f"start_joint_range must be in [0, pi] rad, got {start_joint_range}")
+        if not 0.0 <= goal_switches <= 1.0:
+            raise ValueError(f"goal_switches must be a fraction in [0, 1], got {goal_switches}")
         self.n_demos, self.min_steps, self.max_steps = n_demos, min_steps, max_steps
         self.start_joint_range = float(start_joint_range)
+        self.goal_switches = float(goal_switches)
 
     def config(self) -> dict[str, Any]:
         return {
@@ -100,6 +111,8 @@ class Reacher(Task):
             "max_steps": self.max_steps, "start_joint_range": self.start_joint_range, "start_box": START_BOX,
             "goal_box": GOAL_BOX, "min_distance": MIN_DISTANCE, "step_seconds": self.step_seconds,
             "success_radius": SUCCESS_RADIUS, "profile": "min-jerk line, tool down",
+            # only when used, so the paper's datasets keep their cache entries
+            **({"goal_switches": self.goal_switches, "switch_hold": SWITCH_HOLD} if self.goal_switches else {}),
         }
 
     def phi(self, tip_pos, psi):
@@ -169,30 +182,58 @@ class Reacher(Task):
     # demonstrations ------------------------------------------------------------
     def demos(self, seed: int = 0) -> Demos:
         rng = np.random.default_rng(seed)
-        accepted: list[tuple[np.ndarray, np.ndarray, int]] = []
+        accepted: list[tuple[np.ndarray, np.ndarray]] = []  # (path (n+1, 7), psi (n+1, 3))
         rejections = {"ik": 0, "physics": 0}
         while len(accepted) < self.n_demos:
             need = self.n_demos - len(accepted)
             q0 = self.sample_starts(rng, need)
             goals = self.sample_goals(rng, tip_position_np(q0))
             q, steps, ok = self.expert(q0, goals)
-            for b in tqdm(range(need), desc=f"{self.name} demos: physics replay", disable=None, leave=False):
-                if not ok[b]:
+            candidates = [(q[b, : steps[b] + 1], np.repeat(goals[b][None], steps[b] + 1, axis=0), ok[b])
+                          for b in range(need)]
+            if self.goal_switches:  # drawn only then, so the paper's datasets stay as they were
+                candidates = self._switch_some(rng, candidates)
+            for path, psi, ok_b in tqdm(candidates, desc=f"{self.name} demos: physics replay", disable=None,
+                                        leave=False):
+                if not ok_b:
                     rejections["ik"] += 1
                     continue
-                path = q[b, : steps[b] + 1]
-                if self.final_distance(path, goals[b]) >= SUCCESS_RADIUS:
+                if self.final_distance(path, psi[-1]) >= SUCCESS_RADIUS:
                     rejections["physics"] += 1
                     continue
-                accepted.append((path, goals[b], int(steps[b])))
+                accepted.append((path, psi))
         if sum(rejections.values()):
             log.info("reacher demos: resampled %s", rejections)
-        lengths = np.array([a[2] for a in accepted])
+        lengths = np.array([len(a[0]) - 1 for a in accepted])
         T = int(lengths.max())
-        qs = np.stack([np.concatenate([a[0], np.repeat(a[0][-1:], T - a[2], axis=0)]) for a in accepted])
-        psi = np.repeat(np.stack([a[1] for a in accepted])[:, None], T + 1, axis=1)
+        qs, psi = (np.stack([np.concatenate([a[i], np.repeat(a[i][-1:], T + 1 - len(a[i]), axis=0)])
+                             for a in accepted]) for i in (0, 1))
         meta = {"rejections": rejections, "expert_success": 1.0, "replayed_in_physics": len(accepted)}
+        if self.goal_switches:
+            meta["goal_switches"] = int(sum(bool((a[1] != a[1][:1]).any()) for a in accepted))
         return Demos(q=qs, grip=np.zeros(qs.shape[:2]), psi=psi, lengths=lengths, meta=meta)
+
+    def _switch_some(self, rng: np.random.Generator, candidates: list[tuple[np.ndarray, np.ndarray, bool]]
+                     ) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+        """A `goal_switches` fraction of the candidate demonstrations (path, psi, ok) with a goal switch
+        (module docstring): the first reach up to step k (held at its end if k lies past it), then the
+        expert's straight reach from there to a new goal; psi is the new goal from row k on."""
+        chosen = np.flatnonzero(rng.random(len(candidates)) < self.goal_switches)
+        if not len(chosen):
+            return candidates
+        steps = np.array([len(candidates[b][0]) - 1 for b in chosen])
+        k = rng.integers(steps // 2, steps + SWITCH_HOLD + 1)
+        firsts = [np.concatenate([candidates[b][0], np.repeat(candidates[b][0][-1:], max(0, kb - s), axis=0)])[: kb + 1]
+                  for b, kb, s in zip(chosen, k, steps, strict=True)]
+        new_goals = self.sample_goals(rng, np.stack([candidates[b][1][0] for b in chosen]))
+        q2, steps2, ok2 = self.expert(np.stack([f[-1] for f in firsts]), new_goals)
+        out = list(candidates)
+        for i, b in enumerate(chosen):
+            second = q2[i, 1: steps2[i] + 1]
+            psi = np.concatenate([np.repeat(candidates[b][1][:1], k[i], axis=0),
+                                  np.repeat(new_goals[i][None], len(second) + 1, axis=0)])
+            out[b] = (np.concatenate([firsts[i], second]), psi, bool(candidates[b][2] and ok2[i]))
+        return out
 
     # evaluation --------------------------------------------------------------
     def final_distance(self, q: np.ndarray, goal: np.ndarray) -> float:
