@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from experiments.stats import success_cells, success_table
+from experiments.stats import success_table
 from reports import paper
+from reports.levers import task_cells
 from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
 from reports.store import Study
 
@@ -49,9 +50,7 @@ def scaling_cells(studies: list[Study], task: str) -> pd.DataFrame:
         if n in seen:
             raise DataScalingError(f"studies {seen[n]!r} and {study.name!r} both trained {task} on {n} demonstrations")
         seen[n] = study.name
-        evals = study.eval_metrics()
-        evals = evals[(evals["status"] == "FINISHED") & (evals["task"] == task)]
-        frames.append(success_cells(evals, study.variants).assign(n_demos=n, study=study.name))
+        frames.append(task_cells(study, task).assign(n_demos=n, study=study.name))
     cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     if cells.empty:
         return cells

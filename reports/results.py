@@ -33,6 +33,8 @@ Placeholders of the template:
                              (study_name or parent run id) than the --ablation one; provenance lists them all
     {{ data_scaling("TASK", "STUDY", ...) }}  success vs number of demonstrations of TASK's models across
                              ablation studies that differ in it: a table and a figure (reports.data_scaling)
+    {{ lever("TASK", "STUDY", ...) }}  TASK's models across ablation studies that differ in some settings (read
+                             from their params): a table and a figure (reports.levers)
 
 New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder(results, study) returning a
 Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
@@ -58,7 +60,7 @@ import pandas as pd
 
 from envs.fileio import atomic_write_text
 from experiments.stats import SUCCESS_NOTE
-from reports import data_scaling, figures, milestones, multimodal, paper, sweeps, tables, trajectories
+from reports import data_scaling, figures, levers, milestones, multimodal, paper, sweeps, tables, trajectories
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
@@ -66,7 +68,7 @@ from reports.selection import Selection, select_studies
 from reports.store import DEFAULT_TRACKING_URI, Store, StoreError, Study, file_safe
 from reports.sweeps import sweep_task
 from reports.tables import Table
-from reports.template import SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
+from reports.template import MULTI_STUDY, SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +108,7 @@ class Results:
         """The default ablation study if the template uses it, the ablation studies it uses (in order) and the
         sweep studies it uses (all selected ones when the template names none specifically)."""
         abl = [self.need_ablation(p) for p in placeholders if is_ablation_kind(p.kind)]
-        abl += [self.named[name] for p in placeholders if p.kind == "data_scaling" for name in p.studies]
+        abl += [self.named[name] for p in placeholders if p.kind in MULTI_STUDY for name in p.studies]
         default = self.ablation if any(is_ablation_kind(p.kind) and p.study is None for p in placeholders) else None
         abl = list({s.run_id: s for s in abl}.values())
         swp = list(dict.fromkeys(self.sweep_of(p).run_id for p in placeholders if p.kind.startswith("sweep_")))
@@ -185,6 +187,22 @@ class Results:
                                   lambda folder: data_scaling.scaling_figure(cells, task, folder),
                                   label=f"{task}: {len(studies)} studies")
 
+    def lever(self, ph: Placeholder) -> str:
+        task, studies = ph.arg, [self.named[name] for name in ph.studies]
+        try:
+            cells = levers.lever_cells(studies, task)
+        except levers.LeverError as exc:
+            raise ResultsError(f"{ph}: {exc}") from None
+        table = levers.lever_table(cells)
+        text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
+        text += (f"\n- Studies: {', '.join(s.name for s in studies)}; setting: what the study's {task} runs "
+                 f"changed against the other studies named here (their params; a data option not logged is the "
+                 f"task's default); {SUCCESS_NOTE}\n\n")
+        out_name = f"{file_safe(task)}_lever_{file_safe(studies[-1].name)}"
+        return text + self.figure(studies[0], levers.NAME, out_name,
+                                  lambda folder: levers.lever_figure(cells, task, folder),
+                                  label=f"{task}: {len(studies)} studies")
+
     # ------------------------------------------------------------------- render
     def render_one(self, ph: Placeholder, placeholders: list[Placeholder]) -> str:
         if ph.kind == "provenance":
@@ -200,6 +218,8 @@ class Results:
             return self.sweep_figures(ph)
         if ph.kind == "data_scaling":
             return self.data_scaling(ph)
+        if ph.kind == "lever":
+            return self.lever(ph)
         return self.ablation_figure(ph)
 
     def render(self, template: str) -> str:
@@ -298,8 +318,8 @@ NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milest
 
 
 def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dict[str, Study]:
-    """The studies the template names (study="NAME", and data_scaling's), each checked to be of a NAMED_KINDS kind
-    in the store."""
+    """The studies the template names (study="NAME", and those of data_scaling and lever), each checked to be of a
+    NAMED_KINDS kind in the store."""
     named: dict[str, Study] = {}
     for ph in placeholders:
         for name in ph.studies:

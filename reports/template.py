@@ -3,7 +3,7 @@ before any study is read so that a typo is one line naming it (with its line), n
 
     {{ provenance }}  {{ command }}  {{ success_table }}  {{ circle_table }}  {{ train_time_table }}
     {{ figure("NAME") }}  {{ sweep_table("TASK") }}  {{ sweep_figure("TASK") }}  {{ sweep_figure("TASK", "NAME") }}
-    {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}
+    {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}  {{ lever("TASK", "STUDY", "STUDY", ...) }}
 
 The ablation tables and figures take an optional study="NAME" (a study_name or parent run id), e.g.
 {{ success_table(study="multimodal") }} or {{ figure("tip_paths", study="multimodal") }}; without it they show
@@ -18,8 +18,11 @@ from dataclasses import dataclass
 from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 
 FIXED = ("provenance", "command")
-# name -> (min, max) arguments; data_scaling: a training task, then the studies (reports.data_scaling)
-WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), "data_scaling": (2, 12)}
+# name -> (min, max) arguments; data_scaling and lever: a training task, then the studies (reports.data_scaling,
+# reports.levers)
+WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), "data_scaling": (2, 12),
+            "lever": (2, 12)}
+MULTI_STUDY = ("data_scaling", "lever")  # placeholders whose arguments after the task are studies
 SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 STUDY = "study"  # the keyword that picks an ablation-kind placeholder's study
 
@@ -49,8 +52,8 @@ class Placeholder:
 
     @property
     def studies(self) -> tuple[str, ...]:
-        """The studies it names: data_scaling's after its task, else its study="NAME" if any."""
-        if self.kind == "data_scaling":
+        """The studies it names: those after the task of a MULTI_STUDY one, else its study="NAME" if any."""
+        if self.kind in MULTI_STUDY:
             return self.args[1:]
         return () if self.study is None else (self.study,)
 
@@ -74,7 +77,7 @@ class Vocabulary:
     def known(self) -> str:
         return ", ".join([*(f"{{{{ {k} }}}}" for k in (*FIXED, *self.tables)), '{{ figure("NAME") }}',
                           '{{ sweep_table("TASK") }}', '{{ sweep_figure("TASK"[, "NAME"]) }}',
-                          '{{ data_scaling("TASK", "STUDY", ...) }}'])
+                          '{{ data_scaling("TASK", "STUDY", ...) }}', '{{ lever("TASK", "STUDY", ...) }}'])
 
 
 def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:

@@ -1,0 +1,149 @@
+"""A lever's studies side by side (issue 16's "deviations that help"): {{ lever("TASK", "STUDY", "STUDY", ...) }}
+in a RESULTS template. Each study contributes its finished runs of training task TASK; what sets the studies
+apart is read from the store, not written by hand: the settings (params data.*, model.*, train.*, eval.*) whose
+values differ between the named studies, e.g. "n_demos=45, goal_switches=0.5". A setting a study did not log
+(it ran on the default: a data option of the task, a later field of stm.config) reads as that default. The
+table gives, per evaluated task, variant and setting, the statistics of every success table (experiments.stats);
+the figure, grouped bars with the seed-aware 95 % interval."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from experiments.stats import success_cells, success_table
+from reports import paper
+from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
+from reports.store import Study
+
+NAME, TITLE = "lever", "Success by setting"
+SETTING_PREFIXES = ("data.", "model.", "train.", "eval.")
+# params that differ between runs of one study or only say how it was logged, never a lever
+NOT_SETTINGS = {"train.seed", "train.checkpoint_every", "train.log_every", "train.val_every", "train.max_seconds",
+                "eval.figures"}
+
+
+class LeverError(ValueError):
+    """The named studies cannot be told apart, or a study's runs of the task disagree on a setting."""
+
+
+def task_cells(study: Study, task: str) -> pd.DataFrame:
+    """success_cells of the study's finished runs of training task `task` (every task they were evaluated on)."""
+    evals = study.eval_metrics()
+    evals = evals[(evals["status"] == "FINISHED") & (evals["task"] == task)]
+    return success_cells(evals, study.variants)
+
+
+def study_settings(study: Study, task: str) -> dict[str, str] | None:
+    """The settings (param name without "params." -> value) of the study's finished runs of `task`; None without
+    such runs. A setting two of those runs disagree on is an error (the runs are not one cell)."""
+    runs = study.ok[study.ok["task"] == task]
+    if runs.empty:
+        return None
+    out = {}
+    for col in runs.columns:
+        key = col.removeprefix("params.")
+        if key == col or not key.startswith(SETTING_PREFIXES) or key in NOT_SETTINGS:
+            continue
+        values = runs[col].dropna().astype(str).unique()
+        if len(values) > 1:
+            raise LeverError(f"study {study.name!r}: runs of {task} differ in {key} ({', '.join(sorted(values))})")
+        if len(values):
+            out[key] = values[0]
+    return out
+
+
+def _default(task: str, key: str) -> str | None:
+    """What a setting a study did not log was, as its param would read: a data option's default (the task
+    constructor's), a model or train field's (stm.config: fields a cell leaves out at their default); else None."""
+    from envs.tasks import task_class  # imported only here: it pulls in torch and pybullet
+    from stm.config import ModelConfig, TrainConfig
+
+    section, _, name = key.partition(".")
+    owner = {"data": lambda: task_class(task)(), "model": ModelConfig, "train": TrainConfig}.get(section)
+    value = getattr(owner(), name, None) if owner else None
+    return None if value is None else str(value)
+
+
+def _short(key: str, value: str | None) -> str:
+    name = key.removeprefix("data.")
+    if value is None:
+        return f"{name} not logged"
+    try:
+        return f"{name}={float(value):g}"
+    except ValueError:
+        return f"{name}={value}"
+
+
+def setting_labels(studies: list[Study], task: str) -> dict[str, str]:
+    """Study name -> the settings that tell it apart from the other named studies (the keys whose values differ
+    between them, in a fixed order), for the studies with finished runs of `task`."""
+    names = [s.name for s in studies]
+    if twice := next((n for n in names if names.count(n) > 1), None):
+        raise LeverError(f"names study {twice!r} twice")
+    found = {s.name: got for s in studies if (got := study_settings(s, task)) is not None}
+    keys = sorted({k for got in found.values() for k in got})
+    full = {name: {k: got.get(k, _default(task, k)) for k in keys} for name, got in found.items()}
+    differ = [k for k in keys if len({f[k] for f in full.values()}) > 1]
+    labels = {name: ", ".join(_short(k, f[k]) for k in differ) or "as the first" for name, f in full.items()}
+    twins = [n for n in labels if list(labels.values()).count(labels[n]) > 1]
+    if len(found) > 1 and twins:
+        raise LeverError(f"studies {', '.join(map(repr, twins))} trained {task} with the same settings")
+    return labels
+
+
+def lever_cells(studies: list[Study], task: str) -> pd.DataFrame:
+    """One row per (evaluated task, variant, study), in the studies' order within each variant: success_cells'
+    columns plus `setting` and `study`; studies without finished runs of `task` are left out."""
+    labels = setting_labels(studies, task)
+    frames = [task_cells(s, task).assign(setting=labels[s.name], study=s.name) for s in studies if s.name in labels]
+    cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if cells.empty:
+        return cells
+    variants = {v: i for i, v in enumerate(dict.fromkeys(v for s in studies for v in s.variants))}
+    order = {name: i for i, name in enumerate(labels)}
+    cells = cells.assign(_v=cells["variant"].map(variants), _s=cells["study"].map(order))
+    cells = cells.sort_values(["eval_task", "_v", "_s"], kind="stable")
+    return cells.drop(columns=["_v", "_s"]).reset_index(drop=True)
+
+
+def lever_table(cells: pd.DataFrame) -> pd.DataFrame:
+    """THE success table (per seed, Wilson and seed-aware intervals) with the setting after the variant."""
+    if cells.empty:
+        return pd.DataFrame()
+    table = success_table(cells, paper.variant_label, paper.task_label)
+    table.insert(2, "setting", list(cells["setting"]))
+    return table
+
+
+def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
+    """One panel per evaluated task: a group of bars per setting, one bar per variant (mean over seeds), the
+    seed-aware 95 % interval as an error bar."""
+    if cells.empty:
+        return gap(NAME, TITLE, f"no finished runs of {task} in the named studies")
+    tasks = list(dict.fromkeys(cells["eval_task"]))
+    variants = list(dict.fromkeys(cells["variant"]))
+    settings = list(dict.fromkeys(cells["setting"]))
+    width = 0.8 / len(variants)
+    fig, axes = panel_grid(len(tasks), max(4.2, 1.6 * len(settings)), 3.4)
+    for ax, eval_task in zip(axes.flat, tasks, strict=False):
+        for j, variant in enumerate(variants):
+            got = cells[(cells["eval_task"] == eval_task) & (cells["variant"] == variant)]
+            x = np.array([settings.index(s) for s in got["setting"]]) + (j - (len(variants) - 1) / 2) * width
+            mean = 100 * got["mean"].to_numpy(float)
+            err = np.clip([mean - 100 * got["boot_low"].to_numpy(float), 100 * got["boot_high"].to_numpy(float) - mean],
+                          0, None)
+            ax.bar(x, mean, width, yerr=err, capsize=2, color=variant_color(variant, variants),
+                   label=paper.variant_label(variant))
+        ax.set_xticks(range(len(settings)), [s.replace(", ", "\n") for s in settings], fontsize=7)
+        ax.set_title(paper.task_label(eval_task))
+        ax.set_ylabel("success (%)")
+        ax.set_ylim(0, 103)
+        ax.grid(axis="y", alpha=0.3)
+    axes.flat[0].legend(loc="best", fontsize=7)
+    fig.suptitle(f"{TITLE} ({task} models; mean over seeds, bars: seed-aware 95 %)")
+    out = save(fig, folder, NAME, TITLE)
+    plt.close(fig)
+    return out
