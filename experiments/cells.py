@@ -33,8 +33,8 @@ class Cell:
     @property
     def resolved(self) -> dict[str, Any]:
         """Everything that shapes this cell's results: hashed, logged as params and config.json."""
-        out = {"task": self.task, "variant": self.variant, "seed": self.seed, "model": self.model.to_dict(),
-               "train": self.train.to_dict(), "eval": self.eval_dict(), "eval_tasks": list(self.eval_tasks),
+        out = {"task": self.task, "variant": self.variant, "seed": self.seed, "model": self.model.hashed_dict(),
+               "train": self.train.hashed_dict(), "eval": self.eval_dict(), "eval_tasks": list(self.eval_tasks),
                "dataset_seed": self.dataset_seed}
         if self.data:  # absent when default: cells of profiles without data options keep their hashes
             out["data"] = self.data

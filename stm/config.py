@@ -11,7 +11,7 @@ TOML and the command line); an integer is accepted for a float.
 from __future__ import annotations
 
 from dataclasses import asdict, fields
-from typing import Annotated, Any, Literal, TypeVar, get_args
+from typing import Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass
@@ -36,8 +36,17 @@ NonNegativeFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 class _Config:
     """Shared dict round trip with strict key checking."""
 
+    # fields added after studies were stored -> their defaults: left out of hashed_dict while at them, so those
+    # studies' cells keep their config hashes (tests/test_experiments_config.py) and re-runs skip them
+    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {}
+
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)  # type: ignore[call-overload]
+
+    def hashed_dict(self) -> dict[str, Any]:
+        """What a cell's config hash (and its logged params) holds: to_dict less later fields at their defaults."""
+        return {k: v for k, v in self.to_dict().items()
+                if not (k in self.LATER_DEFAULTS and v == self.LATER_DEFAULTS[k])}
 
     @classmethod
     def from_dict(cls: type[C], d: dict[str, Any]) -> C:
@@ -63,6 +72,8 @@ class ModelConfig(_Config):
 class TrainConfig(_Config):
     """Optimisation and the auto-conditioning schedule."""
 
+    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0}
+
     iters: NonNegativeInt = 2000  # optimizer steps
     batch_size: PositiveInt = 32  # demonstrations per step (sampled without replacement when possible)
     lr: PositiveFloat = 1e-3  # Adam learning rate
@@ -75,6 +86,7 @@ class TrainConfig(_Config):
     detach_feedback: bool = False  # stop gradients through fed-back states (acLSTM reference: no)
     phi_mode: PhiMode = "grounded"  # fed-back phi: "grounded" = FK of the integrated q, "free" = model's own
     input_noise: NonNegativeFloat = 0.0  # std of Gaussian noise on ground-truth inputs, normalised (not in the paper)
+    hold_steps: NonNegativeInt = 0  # steps of holding still trained after each demo (Demos.with_hold; not in the paper)
     checkpoint_every: NonNegativeInt = 500  # iterations between checkpoints (0: only at the end)
     log_every: NonNegativeInt = 10  # iterations between on_metrics calls
     val_every: NonNegativeInt = 0  # iterations between validations (0: never)

@@ -115,6 +115,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
     if len(paths) != K:
         raise ValueError(f"{len(paths)} checkpoint paths for {K} seeds")
     kin = default_tip_kinematics(torch.float32)
+    demos = demos.with_hold(train_cfgs[0].hold_steps)  # one for the pack (check_packable)
     data = DemoTensors.build(task, demos)
     N = len(demos)
     valid = torch.arange(data.states.shape[1])[None, :] <= data.lengths[:, None]

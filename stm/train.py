@@ -276,6 +276,7 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
           progress: bool = False) -> TrainResult:
     """Train an STM on `demos` of `task`; see the module docstring for the schedule."""
     kin = default_tip_kinematics(torch.float32)
+    demos = demos.with_hold(train_cfg.hold_steps)
     data = DemoTensors.build(task, demos)
     N = len(demos)
     valid = torch.arange(data.states.shape[1])[None, :] <= data.lengths[:, None]

@@ -62,7 +62,9 @@ def _assert_same_run(single, packed):
     ("lstm", {}), ("ac-lstm", {"tf_warmup": 2}), ("lstm-mdn", {}), ("ac-lstm-mdn", {"tf_warmup": 2}),
     ("ac-lstm-mdn", {"feedback": "sample", "input_noise": 0.1}),  # each seed's own random stream
     ("ac-lstm-mdn", {"u": 3, "v": 2, "grad_clip": 0.05}),  # layer-sequence chunks; clipping active
-], ids=["lstm", "ac-lstm", "lstm-mdn", "ac-lstm-mdn", "ac-lstm-mdn-sample-noise", "ac-lstm-mdn-u3-clipped"])
+    ("ac-lstm", {"hold_steps": 3}),  # the pack trains the held demos too
+], ids=["lstm", "ac-lstm", "lstm-mdn", "ac-lstm-mdn", "ac-lstm-mdn-sample-noise", "ac-lstm-mdn-u3-clipped",
+        "ac-lstm-hold"])
 def test_packed_training_equals_separate_training(toy, variant, extra):
     task, demos = toy
     model_cfg, cfgs = _configs(variant, **extra)

@@ -244,3 +244,29 @@ def test_tf_warmup_teacher_forces_the_first_iterations_then_auto_conditions(toy,
     assert train(TINY, cfg, task, demos, checkpoint_path=path).history["train/loss"] == warm
     with pytest.raises(ValueError, match=r"tf_warmup\s+Input should be greater than or equal to 0"):
         TrainConfig(tf_warmup=-1)
+
+
+def test_with_hold_appends_the_last_row_and_counts_it():
+    import numpy as np
+
+    demos = ToyReach(n_demos=3, min_steps=5, max_steps=9, gripper=True).demos(0)
+    held = demos.with_hold(4)
+    assert demos.with_hold(0) is demos and held.meta["hold_steps"] == 4
+    np.testing.assert_array_equal(held.lengths, demos.lengths + 4)
+    for i, n in enumerate(demos.lengths):
+        for a, b in ((held.q, demos.q), (held.grip, demos.grip), (held.psi, demos.psi)):
+            np.testing.assert_array_equal(a[i, : n + 1], b[i, : n + 1])  # the demo itself unchanged
+            np.testing.assert_array_equal(a[i, n + 1: n + 5], np.repeat(b[i, n][None], 4, axis=0))  # then it holds
+    with pytest.raises(ValueError, match="hold steps must be >= 0"):
+        demos.with_hold(-1)
+
+
+def test_hold_steps_trains_the_held_demos(toy):
+    """train(hold_steps=H) is training on demos.with_hold(H): the same losses; and not the demos alone."""
+    task, demos = toy
+    cfg = TrainConfig(iters=4, batch_size=3, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0)
+    held = train(TINY, TrainConfig.from_dict({**cfg.to_dict(), "hold_steps": 3}), task, demos)
+    explicit = train(TINY, cfg, task, demos.with_hold(3))
+    plain = train(TINY, cfg, task, demos)
+    assert held.history["train/loss"] == explicit.history["train/loss"]
+    assert held.history["train/loss"] != plain.history["train/loss"]

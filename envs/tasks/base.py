@@ -86,6 +86,19 @@ class Demos:
         t = np.arange(self.q.shape[1])
         return t[None, :] <= self.lengths[:, None]
 
+    def with_hold(self, steps: int) -> Demos:
+        """Each demo followed by `steps` steps of holding its last row (q, grip, psi), counted in its length: a
+        training lever (TrainConfig.hold_steps), since rollouts run past where the shorter demos end and the
+        paper's demos never show the arm staying put."""
+        if steps < 0:
+            raise ValueError(f"hold steps must be >= 0, got {steps}")
+        if steps == 0:
+            return self
+        rows = np.minimum(np.arange(self.q.shape[1] + steps)[None, :], self.lengths[:, None])  # (N, T_max+1+steps)
+        take = lambda a: np.take_along_axis(a, rows.reshape(rows.shape + (1,) * (a.ndim - 2)), axis=1)  # noqa: E731
+        return Demos(q=take(self.q), grip=take(self.grip), psi=take(self.psi), lengths=self.lengths + steps,
+                     meta={**self.meta, "hold_steps": steps})
+
 
 @dataclass
 class Episode:
