@@ -9,10 +9,16 @@ then logged) and becomes a child run of the study "<study>-milestones" in the ex
 `milestone.*`; the metric keys of an ablation cell; its rollouts artifact. The cell's final
 iteration is not evaluated twice: a FINISHED cell's own evaluation is copied (tag copied = 1).
 A re-run evaluates only what is new, e.g. the milestones a still-running study kept since, so it
-can follow a study that trains across sessions."""
+can follow a study that trains across sessions.
+
+`--feedback MODE` evaluates the same kept checkpoints (the final one included: nothing is copied) feeding
+back MODE (stm.config.FEEDBACKS; an MDN's choice, a deterministic head has one output) instead of the
+cells' eval.feedback, as the study "<study>-milestones-feedback-<MODE>": the feedback lever of a study's own
+models, at the cost of evaluation only. Its runs log eval.feedback = MODE."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -37,6 +43,7 @@ from experiments.tracking import (
     set_tags,
 )
 from experiments.worker import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, setup_process
+from stm.config import FEEDBACKS
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +103,7 @@ def _source_config(client: Client, run_id: str, work: Path) -> dict[str, Any]:
 
 
 def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None, level: int,
-                       threads: int | None) -> tuple[str, str]:
+                       threads: int | None, feedback: str | None = None) -> tuple[str, str]:
     """Worker entry point: evaluate one kept checkpoint into its run; (status, error)."""
     import numpy as np
 
@@ -110,7 +117,8 @@ def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None
         with tempfile.TemporaryDirectory(prefix="acrmdn-milestone-") as tmp:
             work = Path(tmp)
             cfg = _source_config(client, m.source_run, work / "config")
-            eval_cfg = dict(cfg["eval"], rollouts=rollouts or cfg["eval"]["rollouts"])
+            eval_cfg = dict(cfg["eval"], rollouts=rollouts or cfg["eval"]["rollouts"],
+                            feedback=feedback or cfg["eval"]["feedback"])
             path = client.download_artifacts(m.source_run, f"{KEPT_CHECKPOINT_DIR}/{m.iteration}/{CHECKPOINT_NAME}",
                                              str(work / "ckpt"))
             train = cfg["train"]
@@ -151,15 +159,19 @@ def _copy_final(client: Client, m: Milestone, run_id: str) -> None:
     client.set_terminated(run_id, "FINISHED")
 
 
-def prepare(client: Client, study: str, profile: str, milestones: list[Milestone], rollouts: int | None
-            ) -> tuple[str, list[tuple[Milestone, str]], int]:
+def milestones_study_name(study: str, feedback: str | None = None) -> str:
+    return f"{study}-milestones" + (f"-feedback-{feedback}" if feedback else "")
+
+
+def prepare(client: Client, study: str, profile: str, milestones: list[Milestone], rollouts: int | None,
+            feedback: str | None = None) -> tuple[str, list[tuple[Milestone, str]], int]:
     """The milestones study's parent run, (milestone, run id) still to evaluate, and how many are done."""
     experiment_id = get_or_create_experiment(client, MILESTONES)
-    name = f"{study}-milestones"
+    name = milestones_study_name(study, feedback)
     parent_id = get_or_create_parent_run(client, experiment_id, name, {"kind": MILESTONES, "source_study": study,
                                                                        "profile": profile})
     log_params(client, parent_id, {"source_study": study, "rollouts": rollouts or "as the cells",
-                                   **provenance_params()})
+                                   **({"feedback": feedback} if feedback else {}), **provenance_params()})
     existing = {(r.data.tags.get("source_run"), r.data.tags.get("iteration")): r
                 for r in child_runs(client, experiment_id, parent_id)}
     todo, done = [], 0
@@ -175,7 +187,8 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
                                        ).info.run_id
             params = {k: v for k, v in client.get_run(m.source_run).data.params.items() if not k.startswith("claim.")}
             log_params(client, run_id, {**params, "milestone.iteration": m.iteration,
-                                        "milestone.rollouts": rollouts or "as the cell"})
+                                        "milestone.rollouts": rollouts or "as the cell",
+                                        **({"eval.feedback": feedback} if feedback else {})})
         else:
             run_id = run.info.run_id
         todo.append((m, run_id))
@@ -183,14 +196,18 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
 
 
 def run_milestones(study: str, tasks: list[str] | None = None, variants: list[str] | None = None,
-                   rollouts: int | None = None, workers: int = 1, uri: str | None = None) -> dict[str, int]:
-    """Evaluate every kept checkpoint of the study not evaluated yet; counts by outcome."""
+                   rollouts: int | None = None, workers: int = 1, uri: str | None = None,
+                   feedback: str | None = None) -> dict[str, int]:
+    """Evaluate every kept checkpoint of the study not evaluated yet (feeding back `feedback` instead of the
+    cells' own: module docstring); counts by outcome."""
     from experiments.procs import worker_pool
 
     start = time.perf_counter()
     client = Client(uri)
     milestones, profile = find_milestones(client, study, tasks, variants)
-    parent_id, todo, done = prepare(client, study, profile, milestones, rollouts)
+    if feedback:  # the final models too are evaluated anew, with another feedback than their own evaluation's
+        milestones = [dataclasses.replace(m, final=False) for m in milestones]
+    parent_id, todo, done = prepare(client, study, profile, milestones, rollouts, feedback)
     counts = {"FINISHED": 0, "FAILED": 0, "skipped": done}
     level = logging.getLogger().getEffectiveLevel()
     log.info("study %r: %d kept checkpoints (%d to evaluate, %d done)", study, len(milestones), len(todo), done)
@@ -200,7 +217,8 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
             _copy_final(client, m, run_id)
             counts["FINISHED"] += 1
     with worker_pool(max(1, workers)) as pool:
-        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, 1)) for m, r in evaluate]
+        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, 1, feedback))
+                   for m, r in evaluate]
         for m, fut in futures:
             status, error = fut.result()
             counts[status] += 1
@@ -217,6 +235,9 @@ def add_parser(sub) -> None:
     p.add_argument("--variants", nargs="+", default=None, help="variants (default: all of the study's)")
     p.add_argument("--rollouts", type=int, default=None, help="episodes per seed and task (default: the cell's)")
     p.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
+    p.add_argument("--feedback", choices=FEEDBACKS, default=None,
+                   help="evaluate feeding back this instead of the cells' eval.feedback, final models included, "
+                        "as the study <study>-milestones-feedback-<MODE>")
     p.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -226,10 +247,11 @@ def main(args) -> int:
         print(f"error: --rollouts must be >= 1, got {args.rollouts}", file=sys.stderr)
         return 2
     try:
-        counts = run_milestones(args.study, args.tasks, args.variants, args.rollouts, args.workers)
+        counts = run_milestones(args.study, args.tasks, args.variants, args.rollouts, args.workers,
+                                feedback=args.feedback)
     except MilestoneError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"milestones of {args.study!r}: {counts['FINISHED']} evaluated, {counts['skipped']} already done, "
-          f"{counts['FAILED']} failed")
+    print(f"{milestones_study_name(args.study, args.feedback)!r}: {counts['FINISHED']} evaluated, "
+          f"{counts['skipped']} already done, {counts['FAILED']} failed")
     return 1 if counts["FAILED"] else 0

@@ -25,6 +25,9 @@ NOT_SETTINGS = {"train.seed", "train.checkpoint_every", "train.log_every", "trai
                 "eval.figures"}
 
 
+ITERATION = "params.milestone.iteration"  # a milestones study's runs: the checkpoint's iteration
+
+
 class LeverError(ValueError):
     """The named studies cannot be told apart, or a study's runs of the task disagree on a setting."""
 
@@ -42,6 +45,10 @@ def study_settings(study: Study, task: str) -> dict[str, str] | None:
     runs = study.ok[study.ok["task"] == task]
     if runs.empty:
         return None
+    iterations = runs[ITERATION].dropna().unique() if ITERATION in runs else []
+    if len(iterations) > 1:  # a milestones study: one cell's models at several points of training
+        listed = ", ".join(sorted(iterations, key=int))
+        raise LeverError(f"study {study.name!r}: runs of {task} at several iterations ({listed})")
     out = {}
     for col in runs.columns:
         key = col.removeprefix("params.")

@@ -118,3 +118,38 @@ def test_results_template_names_the_milestones_study(kept_store, tmp_path):
     assert re.search(r"\| reacher +\| LSTM +\| \d+%", text) and "| pick-and-place" not in text and " gap " not in text
     assert "](fig/kept-milestones_success_vs_iterations.png)" in text
     assert (tmp_path / "fig" / "kept-milestones_success_vs_iterations.png").is_file()
+
+
+@pytest.fixture(scope="module")
+def mdn_store(tmp_path_factory):
+    """A smoke study of lstm-mdn (one seed, 10 iterations) that kept its final checkpoint."""
+    store = tmp_path_factory.mktemp("kept-mdn")
+    proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm-mdn", "--workers", "1",
+                    "--set", "keep_checkpoints=10", "--study-name", "mdn", *SMALL], store)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return store
+
+
+@pytest.mark.slow
+def test_feedback_evaluates_the_final_models_anew_as_their_own_study(mdn_store, tmp_path):
+    proc = run_cli(["milestones", "--study", "mdn", "--feedback", "sample"], mdn_store)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "'mdn-milestones-feedback-sample': 1 evaluated, 0 already done, 0 failed" in proc.stdout
+    client = MlflowClient(f"sqlite:///{mdn_store / 'mlflow.db'}")
+    (source,) = _runs(client, "ablation")
+    (run,) = _runs(client, "milestones")
+    assert run.data.tags["study_name"] == "mdn-milestones-feedback-sample" and "copied" not in run.data.tags
+    assert run.data.params["eval.feedback"] == "sample" and source.data.params["eval.feedback"] == "component_mean"
+    # the same model and episodes, sampled instead of the most likely component's mean: other rollouts
+    assert run.data.metrics["reacher/final_distance_mean"] != source.data.metrics["reacher/final_distance_mean"]
+
+    # the lever table puts the two side by side, told apart by their feedback
+    from reports.results import write_results
+    from reports.store import Store
+
+    template = tmp_path / "t.md"
+    template.write_text('{{ lever("reacher", "mdn", "mdn-milestones-feedback-sample") }}\n')
+    text = write_results(Store(f"sqlite:///{mdn_store / 'mlflow.db'}"), template, tmp_path / "R.md",
+                         tmp_path / "fig").read_text()
+    assert re.search(r"\| reacher +\| LSTM-MDN +\| eval.feedback=component_mean +\|", text)
+    assert re.search(r"\| reacher +\| LSTM-MDN +\| eval.feedback=sample +\|", text)

@@ -94,3 +94,10 @@ def test_the_same_study_twice_is_one_line(store, tmp_path, capsys):
 def test_an_unlogged_train_setting_reads_as_its_default():
     a, b = _study("a", **{"data.n_demos": "45"}), _study("b", **{"data.n_demos": "45", "train.hold_steps": "20"})
     assert setting_labels([a, b], "reacher") == {"a": "train.hold_steps=0", "b": "train.hold_steps=20"}
+
+
+def test_a_milestones_study_at_several_iterations_is_an_error():
+    a = _study("m", **{"data.n_demos": "45"})
+    a.children["params.milestone.iteration"] = ["5000", "10000"]
+    with pytest.raises(LeverError, match="runs of reacher at several iterations \\(5000, 10000\\)"):
+        study_settings(a, "reacher")
