@@ -39,16 +39,17 @@ def task_cells(study: Study, task: str) -> pd.DataFrame:
     return success_cells(evals, study.variants)
 
 
-def study_settings(study: Study, task: str) -> dict[str, str] | None:
-    """The settings (param name without "params." -> value) of the study's finished runs of `task`; None without
-    such runs. A setting two of those runs disagree on is an error (the runs are not one cell)."""
-    runs = study.ok[study.ok["task"] == task]
+def study_settings(study: Study, task: str, variant: str) -> dict[str, str] | None:
+    """The settings (param name without "params." -> value) of the study's finished runs of `task` with
+    `variant`; None without such runs. A setting two of those runs disagree on is an error (they are not one
+    cell), and so are runs at several iterations (a milestones study's checkpoints along training)."""
+    runs = study.ok[(study.ok["task"] == task) & (study.ok["variant"] == variant)]
     if runs.empty:
         return None
     iterations = runs[ITERATION].dropna().unique() if ITERATION in runs else []
-    if len(iterations) > 1:  # a milestones study: one cell's models at several points of training
+    if len(iterations) > 1:
         listed = ", ".join(sorted(iterations, key=int))
-        raise LeverError(f"study {study.name!r}: runs of {task} at several iterations ({listed})")
+        raise LeverError(f"study {study.name!r}: runs of {task}/{variant} at several iterations ({listed})")
     out = {}
     for col in runs.columns:
         key = col.removeprefix("params.")
@@ -56,7 +57,8 @@ def study_settings(study: Study, task: str) -> dict[str, str] | None:
             continue
         values = runs[col].dropna().astype(str).unique()
         if len(values) > 1:
-            raise LeverError(f"study {study.name!r}: runs of {task} differ in {key} ({', '.join(sorted(values))})")
+            raise LeverError(f"study {study.name!r}: runs of {task}/{variant} differ in {key} "
+                             f"({', '.join(sorted(values))})")
         if len(values):
             out[key] = values[0]
     return out
@@ -84,20 +86,25 @@ def _short(key: str, value: str | None) -> str:
         return f"{name}={value}"
 
 
-def setting_labels(studies: list[Study], task: str) -> dict[str, str]:
-    """Study name -> the settings that tell it apart from the other named studies (the keys whose values differ
-    between them, in a fixed order), for the studies with finished runs of `task`."""
+def setting_labels(studies: list[Study], task: str) -> dict[tuple[str, str], str]:
+    """(study name, variant) -> the settings that tell the study's runs of `task` apart from the other named
+    studies' runs of that variant: the keys whose values differ between the studies for some variant, in a
+    fixed order (a lever changes one thing in every variant it trains, so the label is the study's)."""
     names = [s.name for s in studies]
     if twice := next((n for n in names if names.count(n) > 1), None):
         raise LeverError(f"names study {twice!r} twice")
-    found = {s.name: got for s in studies if (got := study_settings(s, task)) is not None}
+    variants = list(dict.fromkeys(v for s in studies for v in s.variants))
+    found = {(s.name, v): got for v in variants for s in studies if (got := study_settings(s, task, v)) is not None}
     keys = sorted({k for got in found.values() for k in got})
-    full = {name: {k: got.get(k, _default(task, k)) for k in keys} for name, got in found.items()}
-    differ = [k for k in keys if len({f[k] for f in full.values()}) > 1]
-    labels = {name: ", ".join(_short(k, f[k]) for k in differ) or "as the first" for name, f in full.items()}
-    twins = [n for n in labels if list(labels.values()).count(labels[n]) > 1]
-    if len(found) > 1 and twins:
-        raise LeverError(f"studies {', '.join(map(repr, twins))} trained {task} with the same settings")
+    full = {at: {k: got.get(k, _default(task, k)) for k in keys} for at, got in found.items()}
+    differ = [k for k in keys if any(len({f[k] for (_, v), f in full.items() if v == variant}) > 1
+                                     for variant in variants)]
+    labels = {at: ", ".join(_short(k, f[k]) for k in differ) or "as the first" for at, f in full.items()}
+    for variant in variants:
+        mine = [(name, label) for (name, v), label in labels.items() if v == variant]
+        twins = [name for name, label in mine if [lb for _, lb in mine].count(label) > 1]
+        if twins:
+            raise LeverError(f"studies {', '.join(map(repr, twins))} trained {task}/{variant} with the same settings")
     return labels
 
 
@@ -105,12 +112,16 @@ def lever_cells(studies: list[Study], task: str) -> pd.DataFrame:
     """One row per (evaluated task, variant, study), in the studies' order within each variant: success_cells'
     columns plus `setting` and `study`; studies without finished runs of `task` are left out."""
     labels = setting_labels(studies, task)
-    frames = [task_cells(s, task).assign(setting=labels[s.name], study=s.name) for s in studies if s.name in labels]
+    frames = []
+    for study in studies:
+        cells = task_cells(study, task)
+        if not cells.empty:
+            frames.append(cells.assign(setting=[labels[(study.name, v)] for v in cells["variant"]], study=study.name))
     cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     if cells.empty:
         return cells
     variants = {v: i for i, v in enumerate(dict.fromkeys(v for s in studies for v in s.variants))}
-    order = {name: i for i, name in enumerate(labels)}
+    order = {s.name: i for i, s in enumerate(studies)}
     cells = cells.assign(_v=cells["variant"].map(variants), _s=cells["study"].map(order))
     cells = cells.sort_values(["eval_task", "_v", "_s"], kind="stable")
     return cells.drop(columns=["_v", "_s"]).reset_index(drop=True)
@@ -125,6 +136,11 @@ def lever_table(cells: pd.DataFrame) -> pd.DataFrame:
     return table
 
 
+def _tick(setting: str) -> str:
+    """A setting as a tick label: one line per key, a long key=value broken after the '='."""
+    return "\n".join(part.replace("=", "=\n") if len(part) > 20 else part for part in setting.split(", "))
+
+
 def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     """One panel per evaluated task: a group of bars per setting, one bar per variant (mean over seeds), the
     seed-aware 95 % interval as an error bar."""
@@ -134,7 +150,7 @@ def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     variants = list(dict.fromkeys(cells["variant"]))
     settings = list(dict.fromkeys(cells["setting"]))
     width = 0.8 / len(variants)
-    fig, axes = panel_grid(len(tasks), max(4.2, 1.6 * len(settings)), 3.4)
+    fig, axes = panel_grid(len(tasks), max(4.2, 2.0 * len(settings)), 3.6)
     for ax, eval_task in zip(axes.flat, tasks, strict=False):
         for j, variant in enumerate(variants):
             got = cells[(cells["eval_task"] == eval_task) & (cells["variant"] == variant)]
@@ -144,12 +160,13 @@ def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
                           0, None)
             ax.bar(x, mean, width, yerr=err, capsize=2, color=variant_color(variant, variants),
                    label=paper.variant_label(variant))
-        ax.set_xticks(range(len(settings)), [s.replace(", ", "\n") for s in settings], fontsize=7)
+        ax.set_xticks(range(len(settings)), [_tick(s) for s in settings], fontsize=7)
         ax.set_title(paper.task_label(eval_task))
         ax.set_ylabel("success (%)")
         ax.set_ylim(0, 103)
         ax.grid(axis="y", alpha=0.3)
-    axes.flat[0].legend(loc="best", fontsize=7)
+    handles, names = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="outside lower center", ncol=len(names), fontsize=8)
     fig.suptitle(f"{TITLE} ({task} models; mean over seeds, bars: seed-aware 95 %)")
     out = save(fig, folder, NAME, TITLE)
     plt.close(fig)

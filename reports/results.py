@@ -195,9 +195,9 @@ class Results:
             raise ResultsError(f"{ph}: {exc}") from None
         table = levers.lever_table(cells)
         text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
-        text += (f"\n- Studies: {', '.join(s.name for s in studies)}; setting: what the study's {task} runs "
-                 f"changed against the other studies named here (their params; a data option not logged is the "
-                 f"task's default); {SUCCESS_NOTE}\n\n")
+        text += (f"\n- Studies: {', '.join(s.name for s in studies)}; setting: what sets the study's {task} runs "
+                 f"of that variant apart from the other studies named here (their params; one not logged is at "
+                 f"its default); {SUCCESS_NOTE}\n\n")
         out_name = f"{file_safe(task)}_lever_{file_safe(studies[-1].name)}"
         return text + self.figure(studies[0], levers.NAME, out_name,
                                   lambda folder: levers.lever_figure(cells, task, folder),

@@ -16,10 +16,12 @@ from reports.levers import LeverError, setting_labels, study_settings
 from reports.store import Study
 
 
-def _study(name: str, **params: object) -> Study:
-    """A finished study of two reacher runs (seeds 0, 1) with the given params (None: not logged)."""
-    rows = [{"status": "FINISHED", "task": "reacher", "variant": "lstm", "seed": s, "params.train.seed": str(s),
-             "params.eval.figures": "4", **{f"params.{k}": v for k, v in params.items()}} for s in (0, 1)]
+def _study(name: str, variants: tuple[str, ...] = ("lstm",), **params: object) -> Study:
+    """A finished study of reacher runs (seeds 0, 1 of each variant) with the given params; the variants differ
+    in their head, as they do."""
+    rows = [{"status": "FINISHED", "task": "reacher", "variant": v, "seed": s, "params.train.seed": str(s),
+             "params.model.head": "mdn" if "mdn" in v else "deterministic", "params.eval.figures": "4",
+             **{f"params.{k}": v for k, v in params.items()}} for v in variants for s in (0, 1)]
     return Study("ablation", {"run_id": name, "tags.study_name": name}, pd.DataFrame(rows), client=None)
 
 
@@ -28,25 +30,36 @@ def test_labels_name_only_the_settings_that_differ():
     b = _study("b", **{"data.n_demos": "45", "data.goal_switches": "0.5", "train.u": "5"})
     c = _study("c", **{"data.n_demos": "150", "data.goal_switches": "0.5", "train.u": "5"})
     # a did not log goal_switches: it ran on the task's default (0)
-    assert setting_labels([a, b, c], "reacher") == {"a": "goal_switches=0, n_demos=45",
-                                                    "b": "goal_switches=0.5, n_demos=45",
-                                                    "c": "goal_switches=0.5, n_demos=150"}
+    assert setting_labels([a, b, c], "reacher") == {("a", "lstm"): "goal_switches=0, n_demos=45",
+                                                    ("b", "lstm"): "goal_switches=0.5, n_demos=45",
+                                                    ("c", "lstm"): "goal_switches=0.5, n_demos=150"}
     assert setting_labels([a, _study("d", **{"data.n_demos": "45", "train.u": "1"})], "reacher") == {
-        "a": "train.u=5", "d": "train.u=1"}
-    assert setting_labels([a], "reacher") == {"a": "as the first"}
+        ("a", "lstm"): "train.u=5", ("d", "lstm"): "train.u=1"}
+    assert setting_labels([a], "reacher") == {("a", "lstm"): "as the first"}
     assert setting_labels([a], "circle") == {}  # no runs of that task
     # the seed and logging cadence differ between runs: never a setting
-    assert "train.seed" not in study_settings(a, "reacher") and "eval.figures" not in study_settings(a, "reacher")
+    settings = study_settings(a, "reacher", "lstm")
+    assert "train.seed" not in settings and "eval.figures" not in settings
+
+
+def test_variants_are_compared_with_their_own_kind():
+    """The variants of one study differ in their head; a lever study of the mixture variants only is told apart
+    from the headline by its feedback, and the headline's deterministic rows keep a label of their own."""
+    head = _study("paper", ("lstm", "lstm-mdn"), **{"eval.feedback": "component_mean"})
+    mixture = _study("mixture", ("lstm-mdn",), **{"eval.feedback": "mixture_mean"})
+    assert setting_labels([head, mixture], "reacher") == {
+        ("paper", "lstm"): "eval.feedback=component_mean", ("paper", "lstm-mdn"): "eval.feedback=component_mean",
+        ("mixture", "lstm-mdn"): "eval.feedback=mixture_mean"}
 
 
 def test_twin_studies_and_runs_that_disagree_are_errors():
     a = _study("a", **{"data.n_demos": "45"})
-    with pytest.raises(LeverError, match="'a', 'a2' trained reacher with the same settings"):
+    with pytest.raises(LeverError, match="'a', 'a2' trained reacher/lstm with the same settings"):
         setting_labels([a, _study("a2", **{"data.n_demos": "45"})], "reacher")
     mixed = _study("m", **{"data.n_demos": "45"})
     mixed.children.loc[1, "params.data.n_demos"] = "90"
-    with pytest.raises(LeverError, match="runs of reacher differ in data.n_demos"):
-        study_settings(mixed, "reacher")
+    with pytest.raises(LeverError, match="runs of reacher/lstm differ in data.n_demos"):
+        study_settings(mixed, "reacher", "lstm")
 
 
 @pytest.fixture(scope="module")
@@ -93,11 +106,12 @@ def test_the_same_study_twice_is_one_line(store, tmp_path, capsys):
 
 def test_an_unlogged_train_setting_reads_as_its_default():
     a, b = _study("a", **{"data.n_demos": "45"}), _study("b", **{"data.n_demos": "45", "train.hold_steps": "20"})
-    assert setting_labels([a, b], "reacher") == {"a": "train.hold_steps=0", "b": "train.hold_steps=20"}
+    assert setting_labels([a, b], "reacher") == {("a", "lstm"): "train.hold_steps=0",
+                                                 ("b", "lstm"): "train.hold_steps=20"}
 
 
 def test_a_milestones_study_at_several_iterations_is_an_error():
     a = _study("m", **{"data.n_demos": "45"})
     a.children["params.milestone.iteration"] = ["5000", "10000"]
-    with pytest.raises(LeverError, match="runs of reacher at several iterations \\(5000, 10000\\)"):
-        study_settings(a, "reacher")
+    with pytest.raises(LeverError, match="runs of reacher/lstm at several iterations \\(5000, 10000\\)"):
+        study_settings(a, "reacher", "lstm")
