@@ -72,6 +72,32 @@ from reports.template import MULTI_STUDY, SWEEP_FIGURES, Placeholder, ResultsErr
 
 log = logging.getLogger(__name__)
 
+
+@dataclass(frozen=True)
+class AcrossStudies:
+    """How a placeholder over several studies of one training task builds its cells, table and figure."""
+
+    name: str  # the figure's name
+    cells: Callable[[list[Study], str], pd.DataFrame]
+    table: Callable[[pd.DataFrame], pd.DataFrame]
+    figure: Callable[[pd.DataFrame, str, Path], FigureResult]
+    error: type[Exception]  # what cells raises when the studies cannot be put side by side
+    note: Callable[[str], str]  # the table's own column explained, for a task
+    out_name: Callable[[str, list[Study]], str]  # the figure's file name
+
+
+ACROSS = {  # template.MULTI_STUDY's placeholders
+    "data_scaling": AcrossStudies(
+        data_scaling.NAME, data_scaling.scaling_cells, data_scaling.scaling_table, data_scaling.scaling_figure,
+        data_scaling.DataScalingError, lambda task: f"demos: the demonstrations the {task} model trained on",
+        lambda task, studies: f"{file_safe(task)}_data_scaling"),
+    "lever": AcrossStudies(
+        levers.NAME, levers.lever_cells, levers.lever_table, levers.lever_figure, levers.LeverError,
+        lambda task: (f"setting: what sets the study's {task} runs of that variant apart from the other studies "
+                      f"named here (their params; one not logged is at its default)"),
+        lambda task, studies: f"{file_safe(task)}_lever_{file_safe(studies[-1].name)}"),
+}
+
 DEFAULT_TEMPLATE = Path("reports/RESULTS.template.md")
 DEFAULT_RESULTS = Path("reports/RESULTS.md")
 DEFAULT_FIGURES = Path("reports/figures")
@@ -173,34 +199,19 @@ class Results:
         return "\n".join(self.figure(study, n, f"{task}_{n}", lambda folder, n=n: getattr(sweeps, n)(study, folder))
                          for n in names)
 
-    def data_scaling(self, ph: Placeholder) -> str:
-        task, studies = ph.arg, [self.named[name] for name in ph.studies]
+    def across(self, ph: Placeholder) -> str:
+        """A placeholder over several studies of one training task (ACROSS): its table, the table's note and a
+        figure."""
+        kind, task, studies = ACROSS[ph.kind], ph.arg, [self.named[name] for name in ph.studies]
         try:
-            cells = data_scaling.scaling_cells(studies, task)
-        except data_scaling.DataScalingError as exc:
+            cells = kind.cells(studies, task)
+        except kind.error as exc:
             raise ResultsError(f"{ph}: {exc}") from None
-        table = data_scaling.scaling_table(cells)
+        table = kind.table(cells)
         text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
-        text += (f"\n- Studies: {', '.join(s.name for s in studies)}; demos: the demonstrations the {task} model "
-                 f"trained on; {SUCCESS_NOTE}\n\n")
-        return text + self.figure(studies[0], data_scaling.NAME, f"{file_safe(task)}_data_scaling",
-                                  lambda folder: data_scaling.scaling_figure(cells, task, folder),
-                                  label=f"{task}: {len(studies)} studies")
-
-    def lever(self, ph: Placeholder) -> str:
-        task, studies = ph.arg, [self.named[name] for name in ph.studies]
-        try:
-            cells = levers.lever_cells(studies, task)
-        except levers.LeverError as exc:
-            raise ResultsError(f"{ph}: {exc}") from None
-        table = levers.lever_table(cells)
-        text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
-        text += (f"\n- Studies: {', '.join(s.name for s in studies)}; setting: what sets the study's {task} runs "
-                 f"of that variant apart from the other studies named here (their params; one not logged is at "
-                 f"its default); {SUCCESS_NOTE}\n\n")
-        out_name = f"{file_safe(task)}_lever_{file_safe(studies[-1].name)}"
-        return text + self.figure(studies[0], levers.NAME, out_name,
-                                  lambda folder: levers.lever_figure(cells, task, folder),
+        text += f"\n- Studies: {', '.join(s.name for s in studies)}; {kind.note(task)}; {SUCCESS_NOTE}\n\n"
+        return text + self.figure(studies[0], kind.name, kind.out_name(task, studies),
+                                  lambda folder: kind.figure(cells, task, folder),
                                   label=f"{task}: {len(studies)} studies")
 
     # ------------------------------------------------------------------- render
@@ -216,10 +227,8 @@ class Results:
             return sweeps.sweep_table(self.sweep_of(ph)).to_markdown()
         if ph.kind == "sweep_figure":
             return self.sweep_figures(ph)
-        if ph.kind == "data_scaling":
-            return self.data_scaling(ph)
-        if ph.kind == "lever":
-            return self.lever(ph)
+        if ph.kind in ACROSS:
+            return self.across(ph)
         return self.ablation_figure(ph)
 
     def render(self, template: str) -> str:

@@ -36,6 +36,18 @@ def run_cli(args: list[str], store: Path, timeout: int = 400, module: str = "exp
                           capture_output=True, text=True, timeout=timeout)
 
 
+def render_results(store: Path, out: Path, template: str) -> int:
+    """`python -m reports --results` in process: `template` (text) rendered from the store into out/RESULTS.md
+    and out/figures; its exit code."""
+    from reports.__main__ import main
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "template.md").write_text(template)
+    return main(["--results", "--tracking-uri", f"sqlite:///{store / 'mlflow.db'}", "--template",
+                 str(out / "template.md"), "--results-out", str(out / "RESULTS.md"), "--figures-dir",
+                 str(out / "figures")])
+
+
 def held_env(store: Path, signal_file: Path) -> dict[str, str]:
     """cli_env with the fault hook on: each cell signals its first checkpoint and holds there."""
     return cli_env(store, **{SIGNAL_FILE_ENV: str(signal_file), HOLD_ENV: "1"})

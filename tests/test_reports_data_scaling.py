@@ -7,11 +7,10 @@ import re
 from pathlib import Path
 
 import pytest
-from cli_helpers import run_cli
+from cli_helpers import render_results, run_cli
 from mlflow import MlflowClient
 
 from experiments.stats import pct
-from reports.__main__ import main
 
 pytestmark = pytest.mark.slow
 
@@ -27,14 +26,6 @@ def store(tmp_path_factory) -> Path:
     return store
 
 
-def _render(store: Path, out: Path, template: str) -> int:
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "template.md").write_text(template)
-    return main(["--results", "--tracking-uri", f"sqlite:///{store / 'mlflow.db'}", "--template",
-                 str(out / "template.md"), "--results-out", str(out / "RESULTS.md"), "--figures-dir",
-                 str(out / "figures")])
-
-
 def _success(store: Path, study: str, task: str) -> float:
     """The evaluated task's success rate logged by the study's one reacher run."""
     client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
@@ -45,7 +36,8 @@ def _success(store: Path, study: str, task: str) -> float:
 
 
 def test_one_curve_from_two_studies(store, tmp_path):
-    assert _render(store, tmp_path, '{{ provenance }}\n\n{{ data_scaling("reacher", "demos6", "demos4") }}\n') == 0
+    template = '{{ provenance }}\n\n{{ data_scaling("reacher", "demos6", "demos4") }}\n'
+    assert render_results(store, tmp_path, template) == 0
     text = (tmp_path / "RESULTS.md").read_text()
     lines = text.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("| task"))
@@ -81,7 +73,7 @@ def test_each_study_sits_at_its_own_number_of_demonstrations(store):
 
 
 def test_two_studies_at_one_count_are_one_line(store, tmp_path, capsys):
-    assert _render(store, tmp_path, '{{ data_scaling("reacher", "demos4", "demos4") }}\n') == 2
+    assert render_results(store, tmp_path, '{{ data_scaling("reacher", "demos4", "demos4") }}\n') == 2
     err = capsys.readouterr().err
     assert "both trained reacher on 4 demonstrations" in err and err.count("\n") == 1, err
     assert not (tmp_path / "RESULTS.md").exists()

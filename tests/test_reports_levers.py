@@ -9,9 +9,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from cli_helpers import run_cli
+from cli_helpers import render_results, run_cli
 
-from reports.__main__ import main
 from reports.levers import LeverError, setting_labels, study_settings
 from reports.store import Study
 
@@ -73,17 +72,9 @@ def store(tmp_path_factory) -> Path:
     return store
 
 
-def _render(store: Path, out: Path, template: str) -> int:
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "template.md").write_text(template)
-    return main(["--results", "--tracking-uri", f"sqlite:///{store / 'mlflow.db'}", "--template",
-                 str(out / "template.md"), "--results-out", str(out / "RESULTS.md"), "--figures-dir",
-                 str(out / "figures")])
-
-
 @pytest.mark.slow
 def test_a_lever_table_and_figure_from_two_real_studies(store, tmp_path):
-    assert _render(store, tmp_path, '{{ provenance }}\n\n{{ lever("reacher", "straight", "switches") }}\n') == 0
+    assert render_results(store, tmp_path, '{{ provenance }}\n\n{{ lever("reacher", "straight", "switches") }}\n') == 0
     text = (tmp_path / "RESULTS.md").read_text()
     table = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.split("| task")[1].splitlines()
              if line.startswith("|") and "---" not in line]
@@ -98,7 +89,7 @@ def test_a_lever_table_and_figure_from_two_real_studies(store, tmp_path):
 
 @pytest.mark.slow
 def test_the_same_study_twice_is_one_line(store, tmp_path, capsys):
-    assert _render(store, tmp_path, '{{ lever("reacher", "straight", "straight") }}\n') == 2
+    assert render_results(store, tmp_path, '{{ lever("reacher", "straight", "straight") }}\n') == 2
     err = capsys.readouterr().err
     assert "names study 'straight' twice" in err and err.count("\n") == 1, err
     assert not (tmp_path / "RESULTS.md").exists()
