@@ -35,6 +35,8 @@ Placeholders of the template:
                              ablation studies that differ in it: a table and a figure (reports.data_scaling)
     {{ lever("TASK", "STUDY", ...) }}  TASK's models across ablation studies that differ in some settings (read
                              from their params): a table and a figure (reports.levers)
+    {{ goal_switch("TASK", "STUDY", ...) }}  where the changing-goal reacher's episodes of TASK's models fail,
+                             per study and variant: a table and a figure (reports.goal_switch)
 
 New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder(results, study) returning a
 Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
@@ -60,7 +62,18 @@ import pandas as pd
 
 from envs.fileio import atomic_write_text
 from experiments.stats import SUCCESS_NOTE
-from reports import data_scaling, figures, levers, milestones, multimodal, paper, sweeps, tables, trajectories
+from reports import (
+    data_scaling,
+    figures,
+    goal_switch,
+    levers,
+    milestones,
+    multimodal,
+    paper,
+    sweeps,
+    tables,
+    trajectories,
+)
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
@@ -82,20 +95,31 @@ class AcrossStudies:
     table: Callable[[pd.DataFrame], pd.DataFrame]
     figure: Callable[[pd.DataFrame, str, Path], FigureResult]
     error: type[Exception]  # what cells raises when the studies cannot be put side by side
-    note: Callable[[str], str]  # the table's own column explained, for a task
+    note: Callable[[str], str]  # the table's columns explained, for a task
     out_name: Callable[[str, list[Study]], str]  # the figure's file name
 
 
 ACROSS = {  # template.MULTI_STUDY's placeholders
     "data_scaling": AcrossStudies(
         data_scaling.NAME, data_scaling.scaling_cells, data_scaling.scaling_table, data_scaling.scaling_figure,
-        data_scaling.DataScalingError, lambda task: f"demos: the demonstrations the {task} model trained on",
+        data_scaling.DataScalingError,
+        lambda task: f"demos: the demonstrations the {task} model trained on; {SUCCESS_NOTE}",
         lambda task, studies: f"{file_safe(task)}_data_scaling"),
     "lever": AcrossStudies(
         levers.NAME, levers.lever_cells, levers.lever_table, levers.lever_figure, levers.LeverError,
         lambda task: (f"setting: what sets the study's {task} runs of that variant apart from the other studies "
-                      f"named here (their params; one not logged is at its default)"),
+                      f"named here (their params; one not logged is at its default); {SUCCESS_NOTE}"),
         lambda task, studies: f"{file_safe(task)}_lever_{file_safe(studies[-1].name)}"),
+    "goal_switch": AcrossStudies(
+        goal_switch.NAME, goal_switch.switch_cells, goal_switch.switch_table, goal_switch.switch_figure,
+        levers.LeverError,
+        lambda task: (f"the {goal_switch.EVAL_TASK} episodes of the {task} models, pooled over seeds; setting: as "
+                      f"in the lever table; never set off (under {goal_switch.SET_OFF:.0%} of the way to the new "
+                      f"goal at the end), still moving (faster than {goal_switch.MOVING * 1000:g} mm per step over "
+                      f"the last {goal_switch.TAIL}): shares of the failed episodes; progress: 1 - distance to the "
+                      f"new goal at the end / at the switch; steps to half-way: after the switch, '–' when most "
+                      f"never get there."),
+        lambda task, studies: f"{file_safe(task)}_goal_switch_{file_safe(studies[-1].name)}"),
 }
 
 DEFAULT_TEMPLATE = Path("reports/RESULTS.template.md")
@@ -209,7 +233,7 @@ class Results:
             raise ResultsError(f"{ph}: {exc}") from None
         table = kind.table(cells)
         text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
-        text += f"\n- Studies: {', '.join(s.name for s in studies)}; {kind.note(task)}; {SUCCESS_NOTE}\n\n"
+        text += f"\n- Studies: {', '.join(s.name for s in studies)}; {kind.note(task)}\n\n"
         return text + self.figure(studies[0], kind.name, kind.out_name(task, studies),
                                   lambda folder: kind.figure(cells, task, folder),
                                   label=f"{task}: {len(studies)} studies")

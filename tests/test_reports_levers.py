@@ -88,6 +88,18 @@ def test_a_lever_table_and_figure_from_two_real_studies(store, tmp_path):
 
 
 @pytest.mark.slow
+def test_the_failures_anatomy_from_the_real_rollouts(store, tmp_path):
+    """{{ goal_switch(...) }} reads the changing-goal rollouts artifacts of the same two studies."""
+    assert render_results(store, tmp_path, '{{ goal_switch("reacher", "straight", "switches") }}\n') == 0
+    text = (tmp_path / "RESULTS.md").read_text()
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
+            if line.startswith("| LSTM")]
+    assert [r[:2] for r in rows] == [["LSTM", "goal_switches=0"], ["LSTM", "goal_switches=0.5"]]
+    assert all(r[-2:] == ["2", "1"] for r in rows)  # 2 episodes, 1 seed
+    assert (tmp_path / "figures" / "reacher_goal_switch_switches.png").stat().st_size > 0
+
+
+@pytest.mark.slow
 def test_the_same_study_twice_is_one_line(store, tmp_path, capsys):
     assert render_results(store, tmp_path, '{{ lever("reacher", "straight", "straight") }}\n') == 2
     err = capsys.readouterr().err
