@@ -16,7 +16,7 @@ import pandas as pd
 
 from reports import paper
 from reports.levers import setting_labels
-from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
+from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
 from reports.store import Study
 
 NAME, TITLE = "goal_switch", "Changing-goal reacher: distance to the new goal after the switch"
@@ -134,8 +134,7 @@ def switch_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
         ax.set_ylabel("distance left / at the switch")
         ax.set_ylim(-0.05, 1.05)
         ax.grid(alpha=0.3)
-    handles, names = axes.flat[0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="outside lower center", ncol=len(names), fontsize=8)
+    legend_below(fig, axes.flat[0])
     fig.suptitle(f"{TITLE} (median over episodes and seeds)")
     out = save(fig, folder, NAME, TITLE)
     plt.close(fig)

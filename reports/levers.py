@@ -15,7 +15,7 @@ import pandas as pd
 
 from experiments.stats import success_cells, success_table
 from reports import paper
-from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
+from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
 from reports.store import Study
 
 NAME, TITLE = "lever", "Success by setting"
@@ -165,8 +165,7 @@ def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
         ax.set_ylabel("success (%)")
         ax.set_ylim(0, 103)
         ax.grid(axis="y", alpha=0.3)
-    handles, names = axes.flat[0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="outside lower center", ncol=len(names), fontsize=8)
+    legend_below(fig, axes.flat[0])
     fig.suptitle(f"{TITLE} ({task} models; mean over seeds, bars: seed-aware 95 %)")
     out = save(fig, folder, NAME, TITLE)
     plt.close(fig)

@@ -53,6 +53,12 @@ def save(fig, folder: Path, name: str, title: str, partial: list[str] | None = N
     return FigureResult(name, title, [Path(p) for p in paths], partial=partial or [])
 
 
+def legend_below(fig, ax) -> None:
+    """One legend for the whole figure, under its panels, from the entries of `ax`."""
+    handles, names = ax.get_legend_handles_labels()
+    fig.legend(handles, names, loc="outside lower center", ncol=len(names), fontsize=8)
+
+
 def gap(name: str, title: str, reason: str) -> FigureResult:
     log.info("figure %s is a gap: %s", name, reason)
     return FigureResult(name, title, gap=reason)
