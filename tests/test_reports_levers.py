@@ -1,15 +1,10 @@
 """{{ lever(...) }} (reports.levers): a lever's studies side by side, each labelled by the settings that set it
-apart (read from the runs' params). Pure checks on hand-made studies, then two real smoke ablations of reacher's
-LSTM, with and without goal-switch demonstrations, rendered by the RESULTS template."""
+apart (read from the runs' params): checks on hand-made studies (the real ones: test_reports_across_studies)."""
 
 from __future__ import annotations
 
-import re
-from pathlib import Path
-
 import pandas as pd
 import pytest
-from cli_helpers import render_results, run_cli
 
 from reports.levers import LeverError, setting_labels, study_settings
 from reports.store import Study
@@ -59,62 +54,3 @@ def test_twin_studies_and_runs_that_disagree_are_errors():
     mixed.children.loc[1, "params.data.n_demos"] = "90"
     with pytest.raises(LeverError, match="runs of reacher/lstm differ in data.n_demos"):
         study_settings(mixed, "reacher", "lstm")
-
-
-@pytest.fixture(scope="module")
-def store(tmp_path_factory) -> Path:
-    store = tmp_path_factory.mktemp("lever")
-    for name, extra in (("straight", []), ("switches", ["--set", "per_task.reacher.data.goal_switches=0.5"])):
-        proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name",
-                        name, "--set", "per_task.reacher.data.n_demos=4", "--set", "eval.rollouts=2",
-                        "--set", "eval.figures=0", *extra], store)
-        assert proc.returncode == 0, proc.stderr[-3000:]
-    return store
-
-
-@pytest.mark.slow
-def test_a_lever_table_and_figure_from_two_real_studies(store, tmp_path):
-    assert render_results(store, tmp_path, '{{ provenance }}\n\n{{ lever("reacher", "straight", "switches") }}\n') == 0
-    text = (tmp_path / "RESULTS.md").read_text()
-    table = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.split("| task")[1].splitlines()
-             if line.startswith("|") and "---" not in line]
-    assert [r[:3] for r in table] == [["reacher", "LSTM", "goal_switches=0"], ["reacher", "LSTM", "goal_switches=0.5"],
-                                      ["changing-goal reacher", "LSTM", "goal_switches=0"],
-                                      ["changing-goal reacher", "LSTM", "goal_switches=0.5"]]
-    assert all(r[-2:] == ["2", "1"] for r in table)  # 2 rollouts, 1 seed
-    link = re.search(r"!\[Success by setting \(reacher: 2 studies\)\]\((figures/reacher_lever_switches\.png)\)", text)
-    assert link and (tmp_path / link.group(1)).stat().st_size > 0
-    assert "straight" in text.split("| task")[0] and "switches" in text.split("| task")[0]  # provenance lists both
-
-
-@pytest.mark.slow
-def test_the_failures_anatomy_from_the_real_rollouts(store, tmp_path):
-    """{{ goal_switch(...) }} reads the changing-goal rollouts artifacts of the same two studies."""
-    assert render_results(store, tmp_path, '{{ goal_switch("reacher", "straight", "switches") }}\n') == 0
-    text = (tmp_path / "RESULTS.md").read_text()
-    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
-            if line.startswith("| LSTM")]
-    assert [r[:2] for r in rows] == [["LSTM", "goal_switches=0"], ["LSTM", "goal_switches=0.5"]]
-    assert all(r[-2:] == ["2", "1"] for r in rows)  # 2 episodes, 1 seed
-    assert (tmp_path / "figures" / "reacher_goal_switch_switches.png").stat().st_size > 0
-
-
-@pytest.mark.slow
-def test_the_same_study_twice_is_one_line(store, tmp_path, capsys):
-    assert render_results(store, tmp_path, '{{ lever("reacher", "straight", "straight") }}\n') == 2
-    err = capsys.readouterr().err
-    assert "names study 'straight' twice" in err and err.count("\n") == 1, err
-    assert not (tmp_path / "RESULTS.md").exists()
-
-
-def test_an_unlogged_train_setting_reads_as_its_default():
-    a, b = _study("a", **{"data.n_demos": "45"}), _study("b", **{"data.n_demos": "45", "train.hold_steps": "20"})
-    assert setting_labels([a, b], "reacher") == {("a", "lstm"): "train.hold_steps=0",
-                                                 ("b", "lstm"): "train.hold_steps=20"}
-
-
-def test_a_milestones_study_at_several_iterations_is_an_error():
-    a = _study("m", **{"data.n_demos": "45"})
-    a.children["params.milestone.iteration"] = ["5000", "10000"]
-    with pytest.raises(LeverError, match="runs of reacher/lstm at several iterations \\(5000, 10000\\)"):
-        study_settings(a, "reacher", "lstm")

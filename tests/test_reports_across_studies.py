@@ -1,5 +1,7 @@
-"""{{ data_scaling(...) }} (reports.data_scaling): success vs number of demonstrations across real studies: two
-smoke ablations of reacher's LSTM, on 4 and 6 demonstrations, rendered by the RESULTS template as one curve."""
+"""The placeholders over several studies, on two real smoke ablations of reacher's LSTM (6 straight demonstrations;
+4 demonstrations, half of them switching goal): {{ data_scaling(...) }} (reports.data_scaling) as one curve,
+{{ lever(...) }} (reports.levers) telling the two apart by their settings, {{ goal_switch(...) }}
+(reports.goal_switch) from their changing-goal rollouts."""
 
 from __future__ import annotations
 
@@ -18,10 +20,10 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> Path:
     store = tmp_path_factory.mktemp("scaling")
-    for n in (6, 4):
+    for n, switches in ((6, []), (4, ["--set", "per_task.reacher.data.goal_switches=0.5"])):
         proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name",
                         f"demos{n}", "--set", f"per_task.reacher.data.n_demos={n}", "--set", "eval.rollouts=2",
-                        "--set", "eval.figures=0"], store)
+                        "--set", "eval.figures=0", *switches], store)
         assert proc.returncode == 0, proc.stderr[-3000:]
     return store
 
@@ -77,3 +79,35 @@ def test_two_studies_at_one_count_are_one_line(store, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "both trained reacher on 4 demonstrations" in err and err.count("\n") == 1, err
     assert not (tmp_path / "RESULTS.md").exists()
+
+
+def test_a_lever_table_and_figure_from_two_real_studies(store, tmp_path):
+    assert render_results(store, tmp_path, '{{ provenance }}\n\n{{ lever("reacher", "demos6", "demos4") }}\n') == 0
+    text = (tmp_path / "RESULTS.md").read_text()
+    table = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.split("| task")[1].splitlines()
+             if line.startswith("|") and "---" not in line]
+    six, four = "goal_switches=0, n_demos=6", "goal_switches=0.5, n_demos=4"
+    assert [r[:3] for r in table] == [["reacher", "LSTM", six], ["reacher", "LSTM", four],
+                                      ["changing-goal reacher", "LSTM", six], ["changing-goal reacher", "LSTM", four]]
+    assert all(r[-2:] == ["2", "1"] for r in table)  # 2 rollouts, 1 seed
+    link = re.search(r"!\[Success by setting \(reacher: 2 studies\)\]\((figures/reacher_lever_demos4\.png)\)", text)
+    assert link and (tmp_path / link.group(1)).stat().st_size > 0
+    assert "demos4" in text.split("| task")[0] and "demos6" in text.split("| task")[0]  # provenance lists both
+
+
+def test_the_same_study_twice_is_one_line(store, tmp_path, capsys):
+    assert render_results(store, tmp_path, '{{ lever("reacher", "demos4", "demos4") }}\n') == 2
+    err = capsys.readouterr().err
+    assert "names study 'demos4' twice" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "RESULTS.md").exists()
+
+
+def test_the_failures_anatomy_from_the_real_rollouts(store, tmp_path):
+    """{{ goal_switch(...) }} reads the changing-goal rollouts artifacts of the same two studies."""
+    assert render_results(store, tmp_path, '{{ goal_switch("reacher", "demos6", "demos4") }}\n') == 0
+    text = (tmp_path / "RESULTS.md").read_text()
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
+            if line.startswith("| LSTM")]
+    assert [r[:2] for r in rows] == [["LSTM", "goal_switches=0, n_demos=6"], ["LSTM", "goal_switches=0.5, n_demos=4"]]
+    assert all(r[-2:] == ["2", "1"] for r in rows)  # 2 episodes, 1 seed
+    assert (tmp_path / "figures" / "reacher_goal_switch_demos4.png").stat().st_size > 0
