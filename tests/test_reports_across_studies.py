@@ -74,10 +74,14 @@ def test_each_study_sits_at_its_own_number_of_demonstrations(store):
     assert scaling_cells([selection.pick("demos4", ("ablation",))], "circle").empty  # no runs of that task
 
 
-def test_two_studies_at_one_count_are_one_line(store, tmp_path, capsys):
-    assert render_results(store, tmp_path, '{{ data_scaling("reacher", "demos4", "demos4") }}\n') == 2
+@pytest.mark.parametrize(("placeholder", "message"), [
+    ("data_scaling", "both trained reacher on 4 demonstrations"),
+    ("lever", "names study 'demos4' twice"),
+])
+def test_the_same_study_twice_is_one_line(store, tmp_path, capsys, placeholder, message):
+    assert render_results(store, tmp_path, f'{{{{ {placeholder}("reacher", "demos4", "demos4") }}}}\n') == 2
     err = capsys.readouterr().err
-    assert "both trained reacher on 4 demonstrations" in err and err.count("\n") == 1, err
+    assert message in err and err.count("\n") == 1, err
     assert not (tmp_path / "RESULTS.md").exists()
 
 
@@ -93,13 +97,6 @@ def test_a_lever_table_and_figure_from_two_real_studies(store, tmp_path):
     link = re.search(r"!\[Success by setting \(reacher: 2 studies\)\]\((figures/reacher_lever_demos4\.png)\)", text)
     assert link and (tmp_path / link.group(1)).stat().st_size > 0
     assert "demos4" in text.split("| task")[0] and "demos6" in text.split("| task")[0]  # provenance lists both
-
-
-def test_the_same_study_twice_is_one_line(store, tmp_path, capsys):
-    assert render_results(store, tmp_path, '{{ lever("reacher", "demos4", "demos4") }}\n') == 2
-    err = capsys.readouterr().err
-    assert "names study 'demos4' twice" in err and err.count("\n") == 1, err
-    assert not (tmp_path / "RESULTS.md").exists()
 
 
 def test_the_failures_anatomy_from_the_real_rollouts(store, tmp_path):
