@@ -17,7 +17,7 @@ import pandas as pd
 from reports import paper
 from reports.levers import setting_labels
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
-from reports.store import Study
+from reports.store import Study, order_variants
 
 NAME, TITLE = "goal_switch", "Changing-goal reacher: distance to the new goal after the switch"
 EVAL_TASK = "reacher-changing-goal"  # its success is the tip at the new goal, so the tip's path says why it failed
@@ -94,8 +94,6 @@ def _steps(s: pd.Series) -> str:
 
 
 def _variant_order(cells: pd.DataFrame) -> dict[str, int]:
-    from reports.store import order_variants
-
     return {v: i for i, v in enumerate(order_variants(cells["variant"].unique()))}
 
 

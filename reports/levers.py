@@ -23,8 +23,6 @@ SETTING_PREFIXES = ("data.", "model.", "train.", "eval.")
 # params that differ between runs of one study or only say how it was logged, never a lever
 NOT_SETTINGS = {"train.seed", "train.checkpoint_every", "train.log_every", "train.val_every", "train.max_seconds",
                 "eval.figures"}
-
-
 ITERATION = "params.milestone.iteration"  # a milestones study's runs: the checkpoint's iteration
 
 
@@ -96,7 +94,8 @@ def setting_labels(studies: list[Study], task: str) -> dict[tuple[str, str], str
     variants = list(dict.fromkeys(v for s in studies for v in s.variants))
     found = {(s.name, v): got for v in variants for s in studies if (got := study_settings(s, task, v)) is not None}
     keys = sorted({k for got in found.values() for k in got})
-    full = {at: {k: got.get(k, _default(task, k)) for k in keys} for at, got in found.items()}
+    defaults = {k: _default(task, k) for k in keys if any(k not in got for got in found.values())}
+    full = {at: {k: got[k] if k in got else defaults[k] for k in keys} for at, got in found.items()}
     differ = [k for k in keys if any(len({f[k] for (_, v), f in full.items() if v == variant}) > 1
                                      for variant in variants)]
     labels = {at: ", ".join(_short(k, f[k]) for k in differ) or "as the first" for at, f in full.items()}

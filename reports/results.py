@@ -351,8 +351,8 @@ NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milest
 
 
 def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dict[str, Study]:
-    """The studies the template names (study="NAME", and those of data_scaling and lever), each checked to be of a
-    NAMED_KINDS kind in the store."""
+    """The studies the template names (study="NAME", and those of the MULTI_STUDY placeholders), each checked to
+    be of a NAMED_KINDS kind in the store."""
     named: dict[str, Study] = {}
     for ph in placeholders:
         for name in ph.studies:
