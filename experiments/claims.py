@@ -4,12 +4,13 @@ or a re-run while the first is still going) never train one cell twice.
 The claim is the run's param `claim.<n>` = holder id. MLflow params are immutable and keyed by
 (run, key), so of two processes logging `claim.<n+1>` at once exactly one succeeds, on SQLite,
 PostgreSQL and through a tracking server alike. A claimant first writes the tag `claim.beat` =
-"<n>:<unix time>", then the param; the holder beats the tag every `beat` seconds while it
-trains and writes "<n>:done" when it stops. A claim is live while the beat is fresh (younger
-than `grace`) and, on this host, its holder's process exists (so a re-run after a kill -9
-takes over at once); a newer claim may be taken only when none is live. A loser either returns at once
-(`wait=False`) or waits for the holder: the cell FINISHED by it is reported as done by another
-process, a holder that died is taken over (the cell resumes from its checkpoint).
+"<n>:<unix time>", then the param, then the tag `worker` = its host:pid; the holder beats the
+tag every `beat` seconds while it trains and writes "<n>:done" when it stops. A claim is live
+while the beat is fresh (younger than `grace`) and, on this host, its holder's process exists
+(so a re-run after a kill -9 takes over at once); a newer claim may be taken only when none is
+live. A loser either returns at once (`wait=False`) or waits for the holder: the cell FINISHED
+by it is reported as done by another process, FAILED by it (released) as failed, and a holder
+that died is taken over (the cell resumes from its checkpoint).
 """
 
 from __future__ import annotations
@@ -100,7 +101,14 @@ def try_claim(client: Client, run_id: str, grace: float, me: str) -> int:
         if exc.error_code != "INVALID_PARAMETER_VALUE":
             raise
         return 0  # another process took claim n first
+    # who trains the cell now (host:pid): set by the holder only, never by a process waiting for it
+    set_tags(client, run_id, {"worker": me.rsplit(":", 1)[0]})
     return n
+
+
+def released(run) -> bool:
+    """Whether the run's newest claim was given up by its holder (a holder that died never says so)."""
+    return run.data.tags.get(BEAT_TAG, "") == f"{latest_claim(run)[0]}:done"
 
 
 class Beat:
@@ -138,7 +146,9 @@ def acquire(client: Client, run_id: str, key: str, me: str, beat: float, grace: 
         run = client.get_run(run_id)
         if run.info.status == "FINISHED":
             return Claimed("done")
-        if announced and run.info.status == "FAILED" and not is_live(run, grace):
+        # FAILED by a holder that gave up its claim: the cell's own failure. FAILED by the queue for a
+        # holder that died (experiments/sweep_storage.py): taken over below, like any dead holder's cell.
+        if announced and run.info.status == "FAILED" and released(run):
             error = run.data.tags.get("error") or run.info.status
             return Claimed("failed", CellResult(key, run_id, "FAILED", error=f"in another process: {error}"))
         n = try_claim(client, run_id, grace, me)

@@ -113,7 +113,7 @@ def _cell_objective(cfg: StudyConfig, cells: dict[str, Cell], client: Client, ur
         trial.set_user_attr("mlflow_run_id" if len(unit) == 1 else "mlflow_run_ids", run_ids[0] if len(unit) == 1
                             else run_ids)
         for run_id in run_ids:
-            set_tags(client, run_id, {"worker": worker_id(), "queue_entry": trial.number})
+            set_tags(client, run_id, {"queue_entry": trial.number})  # its `worker` tag: the claim's holder
         log.info("worker %s: %s (queue entry %d, run(s) %s)", worker_id(), ", ".join(c.key for c, _ in unit),
                  trial.number, ", ".join(run_ids))
         # the claims wait out a dead worker's claim on a run (on another host: up to the grace period)

@@ -21,6 +21,7 @@ from pathlib import Path
 import tenacity
 from mlflow.entities import Metric
 
+from experiments.claims import is_live
 from experiments.config import SweepConfig
 from experiments.stores import redact
 from experiments.tracking import Client, schema_lock, set_tags, sqlite_path, store_dir
@@ -59,7 +60,7 @@ def open_storage(spec: str, sweep: SweepConfig | None = None, uri: str | None = 
     kwargs = {}
     if sweep is not None:
         kwargs = {"heartbeat_interval": sweep.heartbeat, "grace_period": sweep.grace_period,
-                  "heartbeat_stale_trial_callback": RetryDeadTrial(sweep.max_retry, uri)}
+                  "heartbeat_stale_trial_callback": RetryDeadTrial(sweep.max_retry, uri, sweep.grace_period)}
     db = sqlite_path(spec)
     with warnings.catch_warnings():  # heartbeats are marked experimental in Optuna
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -103,31 +104,55 @@ def retry_callback(max_retry: int):
 
 
 class RetryDeadTrial:
-    """Called by Optuna for a trial whose worker stopped beating: re-queue it with the same
-    parameters (RetryHeartbeatStaleTrialCallback) and mark its MLflow run FAILED with the reason."""
+    """Called by Optuna for a trial whose worker stopped beating: mark its MLflow runs FAILED with
+    the reason, then re-queue it with the same parameters (RetryHeartbeatStaleTrialCallback).
 
-    def __init__(self, max_retry: int, uri: str | None):
+    A run is left alone when it is FINISHED or another live process holds its claim
+    (experiments/claims.py): the trial's worker may only have been waiting for that process, or
+    beaten late while it trained; the holder settles the run itself."""
+
+    def __init__(self, max_retry: int, uri: str | None, grace: float):
         self.retry = retry_callback(max_retry)
         self.uri = uri
+        self.grace = grace
 
     def __call__(self, study, frozen) -> None:
         log.warning("trial %d: its worker %s stopped beating; marked FAIL and re-queued", frozen.number,
                     frozen.user_attrs.get("worker", "?"))
-        self.retry(study, frozen)
+        # the runs first: a worker that pops the re-queued trial must not find its fresh claim overruled
         # a queue entry of a packed cell group holds several runs (experiments/queue.py)
         for run_id in frozen.user_attrs.get("mlflow_run_ids") or [frozen.user_attrs.get("mlflow_run_id")]:
             self._fail_run(run_id, frozen)
+        self.retry(study, frozen)
 
     def _fail_run(self, run_id: str | None, frozen) -> None:
-        if run_id and self.uri:
-            client = Client(self.uri)
-            # what the dead worker reported to Optuna may not have reached MLflow (metrics are batched)
-            now = int(time.time() * 1000)
-            client.log_batch(run_id, metrics=[Metric("val/metric", float(v), now, int(step))
-                                              for step, v in sorted(frozen.intermediate_values.items())])
-            set_tags(client, run_id, {"trial_state": "FAIL", "error": f"worker {frozen.user_attrs.get('worker', '?')} "
-                                      "died (no heartbeat); the trial was re-queued with the same parameters"})
-            client.set_terminated(run_id, "FAILED")
+        if not (run_id and self.uri):
+            return
+        client = Client(self.uri)
+        run = client.get_run(run_id)
+        if run.info.status == "FINISHED" or is_live(run, self.grace):
+            log.info("run %s of trial %d: %s; left as it is", run_id, frozen.number,
+                     "FINISHED" if run.info.status == "FINISHED" else "held by a live process")
+            return
+        # what the dead worker reported to Optuna may not have reached MLflow (metrics are batched)
+        now = int(time.time() * 1000)
+        client.log_batch(run_id, metrics=[Metric("val/metric", float(v), now, int(step))
+                                          for step, v in sorted(frozen.intermediate_values.items())])
+        set_tags(client, run_id, {"trial_state": "FAIL", "error": f"worker {frozen.user_attrs.get('worker', '?')} "
+                                  "died (no heartbeat); the trial was re-queued with the same parameters"})
+        client.set_terminated(run_id, "FAILED")
+
+
+def _told_after_failed_as_stale(exc: BaseException) -> bool:
+    """Optuna's refusal to record a trial that another worker had already failed as stale (its
+    heartbeat came late, e.g. on a starved machine) and re-queued: the work it did stands. Optuna
+    5 raises it as ValueError("Cannot tell a FAIL trial."), masked by an AssertionError from its
+    own clean-up, so the chain is searched."""
+    while exc is not None:
+        if isinstance(exc, ValueError) and str(exc).startswith("Cannot tell a FAIL trial"):
+            return True
+        exc = exc.__context__
+    return False
 
 
 def drain(study, run_one: Callable[[], None], poll: float, what: str = "trial") -> None:
@@ -138,7 +163,13 @@ def drain(study, run_one: Callable[[], None], poll: float, what: str = "trial") 
     while True:
         fail_dead_trials(study)
         if trials_in(study, "WAITING"):
-            run_one()
+            try:
+                run_one()
+            except (ValueError, AssertionError) as exc:
+                if not _told_after_failed_as_stale(exc):
+                    raise
+                log.warning("a %s of this worker was failed as stale by another while it ran (a late "
+                            "heartbeat) and re-queued; its results stand", what)
             continue
         running = trials_in(study, "RUNNING")
         if not running:

@@ -90,4 +90,6 @@ def test_four_workers_one_killed_every_minute(postgres, mlflow_server, tmp_path)
         assert int(client.get_run(run_id).data.tags["resumed_from_iteration"]) >= 20
     entries = optuna.load_study(study_name=f"ablation-cells:{STUDY}", storage=queue).get_trials(deepcopy=False)
     assert not [t for t in entries if t.state in (TrialState.RUNNING, TrialState.WAITING)]
-    assert [t.state for t in entries].count(TrialState.FAIL) == len(killed)
+    # one FAIL per kill; a starved worker's late heartbeat may fail (and re-queue) a live one's entry too,
+    # which the checks above show costs nothing (tests/test_queue_races.py forces that case)
+    assert [t.state for t in entries].count(TrialState.FAIL) >= len(killed)
