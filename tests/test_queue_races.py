@@ -103,7 +103,8 @@ def test_a_waiter_takes_over_a_dead_holders_failed_run_but_not_a_released_one(st
     else:  # the dead holder's cell is this process's now
         assert got == 2
         run = client.get_run(run_id)
-        assert latest_claim(run) == (2, f"{HOST}:{os.getpid()}:w") and run.data.tags["worker"] == f"{HOST}:{os.getpid()}"
+        assert latest_claim(run) == (2, f"{HOST}:{os.getpid()}:w")
+        assert run.data.tags["worker"] == f"{HOST}:{os.getpid()}"
 
 
 def test_a_worker_whose_trial_was_failed_as_stale_goes_on_with_the_queue(tmp_path):
