@@ -30,6 +30,7 @@ from typing import Any
 
 from experiments.tracking import (
     ABLATION,
+    MILESTONE_ITERATION,
     MILESTONES,
     PARENT_TAG,
     Client,
@@ -186,7 +187,7 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
             run_id = client.create_run(experiment_id, run_name=m.key, tags={k: str(v) for k, v in tags.items()}
                                        ).info.run_id
             params = {k: v for k, v in client.get_run(m.source_run).data.params.items() if not k.startswith("claim.")}
-            log_params(client, run_id, {**params, "milestone.iteration": m.iteration,
+            log_params(client, run_id, {**params, MILESTONE_ITERATION: m.iteration,
                                         "milestone.rollouts": rollouts or "as the cell",
                                         **({"eval.feedback": feedback} if feedback else {})})
         else:

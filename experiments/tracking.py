@@ -39,6 +39,7 @@ EXPERIMENT_KIND = "custom_model_development"
 FAILED_STATUSES = ("FAILED", "KILLED")  # a cell or trial run that did not finish: a gap in a report
 ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES = "ablation", "sweep", "smoothing", "idm", "milestones"
 STUDY_KINDS = (ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES)  # one MLflow experiment per study kind
+MILESTONE_ITERATION = "milestone.iteration"  # param of a milestones study's run: its checkpoint's iteration
 PACKAGES = ("torch", "numpy", "pybullet", "pytorch-kinematics", "mlflow", "optuna", "scipy", "acrmdn")
 _RETRY_MARKERS = ("database is locked", "database table is locked", "sqlite3.OperationalError", "disk I/O error")
 

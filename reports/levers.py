@@ -1,10 +1,11 @@
 """A lever's studies side by side (issue 16's "deviations that help"): {{ lever("TASK", "STUDY", "STUDY", ...) }}
-in a RESULTS template. Each study contributes its finished runs of training task TASK; what sets the studies
-apart is read from the store, not written by hand: the settings (params data.*, model.*, train.*, eval.*) whose
-values differ between the named studies, e.g. "n_demos=45, goal_switches=0.5". A setting a study did not log
-(it ran on the default: a data option of the task, a later field of stm.config) reads as that default. The
-table gives, per evaluated task, variant and setting, the statistics of every success table (experiments.stats);
-the figure, grouped bars with the seed-aware 95 % interval."""
+in a RESULTS template; STUDY@ITERATION names the checkpoints a milestones study kept at that iteration. Each
+study contributes its finished runs of training task TASK; what sets the studies apart is read from the store,
+not written by hand: the settings (params data.*, model.*, train.*, eval.*) whose values differ between the
+named studies, e.g. "n_demos=45, goal_switches=0.5". A setting a study did not log (it ran on the default: a
+data option of the task, a later field of stm.config) reads as that default. The table gives, per evaluated
+task, variant and setting, the statistics of every success table (experiments.stats); the figure, grouped bars
+with the seed-aware 95 % interval."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from experiments.stats import success_cells, success_table
+from experiments.tracking import MILESTONE_ITERATION
 from reports import paper
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
 from reports.store import Study
@@ -23,7 +25,7 @@ SETTING_PREFIXES = ("data.", "model.", "train.", "eval.")
 # params that differ between runs of one study or only say how it was logged, never a lever
 NOT_SETTINGS = {"train.seed", "train.checkpoint_every", "train.log_every", "train.val_every", "train.max_seconds",
                 "eval.figures"}
-ITERATION = "params.milestone.iteration"  # a milestones study's runs: the checkpoint's iteration
+ITERATION = f"params.{MILESTONE_ITERATION}"  # a milestones study's runs: the checkpoint's iteration
 
 
 class LeverError(ValueError):
@@ -40,14 +42,16 @@ def task_cells(study: Study, task: str) -> pd.DataFrame:
 def study_settings(study: Study, task: str, variant: str) -> dict[str, str] | None:
     """The settings (param name without "params." -> value) of the study's finished runs of `task` with
     `variant`; None without such runs. A setting two of those runs disagree on is an error (they are not one
-    cell), and so are runs at several iterations (a milestones study's checkpoints along training)."""
+    cell), and so are runs at several iterations (a milestones study's checkpoints along training: name one
+    stage as STUDY@ITERATION). A milestone's train.iters reads as its checkpoint's iteration: what it trained."""
     runs = study.ok[(study.ok["task"] == task) & (study.ok["variant"] == variant)]
     if runs.empty:
         return None
     iterations = runs[ITERATION].dropna().unique() if ITERATION in runs else []
     if len(iterations) > 1:
         listed = ", ".join(sorted(iterations, key=int))
-        raise LeverError(f"study {study.name!r}: runs of {task}/{variant} at several iterations ({listed})")
+        raise LeverError(f"study {study.name!r}: runs of {task}/{variant} at several iterations ({listed}); "
+                         f"name one as {study.name}@ITERATION")
     out = {}
     for col in runs.columns:
         key = col.removeprefix("params.")
@@ -59,6 +63,8 @@ def study_settings(study: Study, task: str, variant: str) -> dict[str, str] | No
                              f"({', '.join(sorted(values))})")
         if len(values):
             out[key] = values[0]
+    if len(iterations):
+        out["train.iters"] = str(iterations[0])
     return out
 
 

@@ -158,7 +158,7 @@ class Results:
         """The default ablation study if the template uses it, the ablation studies it uses (in order) and the
         sweep studies it uses (all selected ones when the template names none specifically)."""
         abl = [self.need_ablation(p) for p in placeholders if is_ablation_kind(p.kind)]
-        abl += [self.named[name] for p in placeholders if p.kind in MULTI_STUDY for name in p.studies]
+        abl += [self.named[whole_study(name)] for p in placeholders if p.kind in MULTI_STUDY for name in p.studies]
         default = self.ablation if any(is_ablation_kind(p.kind) and p.study is None for p in placeholders) else None
         abl = list({s.run_id: s for s in abl}.values())
         swp = list(dict.fromkeys(self.sweep_of(p).run_id for p in placeholders if p.kind.startswith("sweep_")))
@@ -347,19 +347,29 @@ def regeneration_command(ablation: Study | None, sweeps_used: list[Study], templ
     return shlex.join(args).replace("'$MLFLOW_TRACKING_URI'", '"$MLFLOW_TRACKING_URI"')
 
 
+def whole_study(name: str) -> str:
+    """The study a template's NAME@ITERATION is a stage of (NAME itself when it names no iteration)."""
+    return name.partition("@")[0]
+
+
 NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milestones study: its runs are cells too)
 
 
 def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dict[str, Study]:
     """The studies the template names (study="NAME", and those of the MULTI_STUDY placeholders), each checked to
-    be of a NAMED_KINDS kind in the store."""
+    be of a NAMED_KINDS kind in the store; NAME@ITERATION: a milestones study's checkpoints kept at that
+    iteration (Study.at_iteration), beside the whole study under NAME (what provenance lists)."""
     named: dict[str, Study] = {}
     for ph in placeholders:
         for name in ph.studies:
-            if name in named:
-                continue
+            base, _, iteration = name.partition("@")
             try:
-                named[name] = selection.pick(name, NAMED_KINDS)
+                if base not in named:
+                    named[base] = selection.pick(base, NAMED_KINDS)
+                if iteration and name not in named:
+                    if not iteration.isdigit():
+                        raise StoreError(f"{name!r}: the iteration after '@' must be a whole number")
+                    named[name] = named[base].at_iteration(int(iteration))
             except StoreError as exc:
                 raise ResultsError(f"{ph}: {exc}") from None
     return named

@@ -54,3 +54,46 @@ def test_twin_studies_and_runs_that_disagree_are_errors():
     mixed.children.loc[1, "params.data.n_demos"] = "90"
     with pytest.raises(LeverError, match="runs of reacher/lstm differ in data.n_demos"):
         study_settings(mixed, "reacher", "lstm")
+
+
+def test_a_milestones_stage_is_set_beside_a_study_trained_that_long():
+    """STUDY@ITERATION: the checkpoints a milestones study kept at that iteration, whose train.iters reads as the
+    iteration they trained; a stage the study did not keep is an error that lists the kept ones."""
+    from reports.store import StoreError
+
+    stages = pd.concat([_study("m", **{"train.iters": "30000", "milestone.iteration": str(it)}).children
+                        for it in (5000, 10000)], ignore_index=True)
+    milestones = Study("milestones", {"run_id": "m", "tags.study_name": "paper-milestones"}, stages, client=None)
+    lever = _study("switches", **{"train.iters": "5000", "data.goal_switches": "0.5"})
+    with pytest.raises(LeverError, match="several iterations .5000, 10000.; name one as paper-milestones@ITERATION"):
+        setting_labels([milestones, lever], "reacher")
+    at5k = milestones.at_iteration(5000)
+    assert at5k.name == "paper-milestones@5000" and len(at5k.children) == 2
+    assert study_settings(at5k, "reacher", "lstm")["train.iters"] == "5000"
+    assert setting_labels([at5k, lever], "reacher") == {("paper-milestones@5000", "lstm"): "goal_switches=0",
+                                                        ("switches", "lstm"): "goal_switches=0.5"}
+    with pytest.raises(StoreError, match="no runs at iteration 7000 .kept: 5000, 10000."):
+        milestones.at_iteration(7000)
+    with pytest.raises(StoreError, match="kept: none: not a milestones study"):
+        lever.at_iteration(5000)
+
+
+def test_a_template_names_a_stage_and_provenance_keeps_the_whole_study():
+    from reports.results import _named_studies, whole_study
+    from reports.template import Placeholder, ResultsError
+
+    stages = pd.concat([_study("m", **{"milestone.iteration": str(it)}).children for it in (5000, 10000)],
+                       ignore_index=True)
+    whole = Study("milestones", {"run_id": "m", "tags.study_name": "paper-milestones"}, stages, client=None)
+
+    class OneStudy:  # a Selection of one stored study
+        def pick(self, name, kinds):
+            assert name == "paper-milestones"
+            return whole
+
+    named = _named_studies(OneStudy(), [Placeholder("lever", ("reacher", "paper-milestones@10000"), 3)])
+    assert named["paper-milestones"] is whole and len(named["paper-milestones@10000"].children) == 2
+    assert whole_study("paper-milestones@10000") == "paper-milestones"
+    for bad, why in (("paper-milestones@ten", "must be a whole number"), ("paper-milestones@1", "no runs at")):
+        with pytest.raises(ResultsError, match=why):
+            _named_studies(OneStudy(), [Placeholder("lever", ("reacher", bad), 3)])
