@@ -37,6 +37,8 @@ Placeholders of the template:
                              from their params): a table and a figure (reports.levers)
     {{ goal_switch("TASK", "STUDY", ...) }}  where the changing-goal reacher's episodes of TASK's models fail,
                              per study and variant: a table and a figure (reports.goal_switch)
+    {{ stacking("TASK", "STUDY", ...) }}  which block the stacking episodes of TASK's models get to, per
+                             study and variant: a table and a figure (reports.stacking)
 
 New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder(results, study) returning a
 Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
@@ -70,6 +72,7 @@ from reports import (
     milestones,
     multimodal,
     paper,
+    stacking,
     sweeps,
     tables,
     trajectories,
@@ -120,7 +123,16 @@ ACROSS = {  # template.MULTI_STUDY's placeholders
                       f"new goal at the end / at the switch; steps to half-way: after the switch, '–' when most "
                       f"never get there."),
         lambda task, studies: f"{file_safe(task)}_goal_switch_{file_safe(studies[-1].name)}"),
+    "stacking": AcrossStudies(
+        stacking.NAME, stacking.stacking_cells, stacking.stacking_table, stacking.stacking_figure, levers.LeverError,
+        lambda task: (f"the {stacking.EVAL_TASK} episodes of the {task} models, pooled over seeds; setting: as in "
+                      f"the lever table; came for block k: the tool tip within {stacking.REACH * 100:g} cm of the "
+                      f"point where block k is grasped during its sub-episode (each next block starts where the "
+                      f"last place ended); tower of at least k: blocks standing as a tower from the bottom up; "
+                      f"closest approach: the tip's, to each block's grasp point."),
+        lambda task, studies: f"{file_safe(task)}_stacking_{file_safe(studies[-1].name)}"),
 }
+assert set(ACROSS) == set(MULTI_STUDY), "every multi-study placeholder of the template language is built here"
 
 DEFAULT_TEMPLATE = Path("reports/RESULTS.template.md")
 DEFAULT_RESULTS = Path("reports/RESULTS.md")
@@ -236,7 +248,7 @@ class Results:
         text += f"\n- Studies: {', '.join(s.name for s in studies)}; {kind.note(task)}\n\n"
         return text + self.figure(studies[0], kind.name, kind.out_name(task, studies),
                                   lambda folder: kind.figure(cells, task, folder),
-                                  label=f"{task}: {len(studies)} studies")
+                                  label=f"{task}: {len(studies)} stud{'y' if len(studies) == 1 else 'ies'}")
 
     # ------------------------------------------------------------------- render
     def render_one(self, ph: Placeholder, placeholders: list[Placeholder]) -> str:

@@ -4,7 +4,7 @@ before any study is read so that a typo is one line naming it (with its line), n
     {{ provenance }}  {{ command }}  {{ success_table }}  {{ circle_table }}  {{ train_time_table }}
     {{ figure("NAME") }}  {{ sweep_table("TASK") }}  {{ sweep_figure("TASK") }}  {{ sweep_figure("TASK", "NAME") }}
     {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}  {{ lever("TASK", "STUDY", "STUDY", ...) }}
-    {{ goal_switch("TASK", "STUDY", "STUDY", ...) }}
+    {{ goal_switch("TASK", "STUDY", "STUDY", ...) }}  {{ stacking("TASK", "STUDY", "STUDY", ...) }}
 
 The ablation tables and figures take an optional study="NAME" (a study_name or parent run id), e.g.
 {{ success_table(study="multimodal") }} or {{ figure("tip_paths", study="multimodal") }}; without it they show
@@ -19,11 +19,11 @@ from dataclasses import dataclass
 from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 
 FIXED = ("provenance", "command")
-# name -> (min, max) arguments; data_scaling, lever and goal_switch: a training task, then the studies
-# (reports.data_scaling, reports.levers, reports.goal_switch)
-WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), "data_scaling": (2, 12),
-            "lever": (2, 12), "goal_switch": (2, 12)}
-MULTI_STUDY = ("data_scaling", "lever", "goal_switch")  # placeholders whose arguments after the task are studies
+# placeholders whose arguments are a training task, then the studies (reports.results.ACROSS: reports.data_scaling,
+# reports.levers, reports.goal_switch, reports.stacking)
+MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking")
+# name -> (min, max) arguments
+WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), **{k: (2, 12) for k in MULTI_STUDY}}
 SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 STUDY = "study"  # the keyword that picks an ablation-kind placeholder's study
 
@@ -78,8 +78,7 @@ class Vocabulary:
     def known(self) -> str:
         return ", ".join([*(f"{{{{ {k} }}}}" for k in (*FIXED, *self.tables)), '{{ figure("NAME") }}',
                           '{{ sweep_table("TASK") }}', '{{ sweep_figure("TASK"[, "NAME"]) }}',
-                          '{{ data_scaling("TASK", "STUDY", ...) }}', '{{ lever("TASK", "STUDY", ...) }}',
-                          '{{ goal_switch("TASK", "STUDY", ...) }}'])
+                          *(f'{{{{ {k}("TASK", "STUDY", ...) }}}}' for k in MULTI_STUDY)])
 
 
 def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
