@@ -133,7 +133,7 @@ def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], l
                     results[k] = runs[k].finished(runs[k].evaluate(result), start)
                 except Exception as exc:
                     results[k] = runs[k].failed(exc, start)
-    except KeyboardInterrupt:  # Ctrl-C: KILLED, each seed resumable from its last checkpoint artifact
+    except KeyboardInterrupt:  # Ctrl-C: KILLED, each seed resumable from its checkpoint (taken where it stood)
         mark_killed(client, run_ids)
         raise
     return [results[k] for k in range(len(runs))]

@@ -5,9 +5,9 @@ or SQLite state), and stopped with their main process.
   worker exits within a second instead of training on alone. Its run stays RUNNING with its
   last checkpoint artifact, so a re-run resumes it (and claims it at once: experiments/claims.py
   sees that its holder is gone).
-- Stop (Ctrl-C in the main process): `stop` is set; a busy worker is interrupted (its cell is
-  marked KILLED, resumable), an idle one exits. A worker that does not stop within GRACE
-  seconds exits anyway.
+- Stop (Ctrl-C in the main process): `stop` is set; a busy worker is interrupted (a training
+  cell finishes its step and checkpoints there: stm/interrupts.py; the cell is marked KILLED,
+  resumable), an idle one exits. A worker that does not stop within GRACE seconds exits anyway.
 """
 
 from __future__ import annotations

@@ -123,7 +123,7 @@ def run_cell(cell: Cell | dict[str, Any], uri: str, run_id: str, progress: bool 
                            on_validation=run.on_validation, progress=progress)
             metrics = run.evaluate(result)
         return run.finished(metrics, start)
-    except KeyboardInterrupt:  # Ctrl-C: KILLED, resumable from the last checkpoint artifact
+    except KeyboardInterrupt:  # Ctrl-C: KILLED, resumable from its checkpoint (taken where it stood)
         mark_killed(client, [run_id])
         raise
     except Exception as exc:

@@ -27,6 +27,7 @@ from envs.tasks.base import Demos, Task
 from stm.checkpoint import load_checkpoint, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
+from stm.interrupts import whole_step
 from stm.model import STM, normalization_stats
 from stm.packed import PackedAdam, PackedSTM, clip_per_model, packed_unroll
 from stm.train import (
@@ -65,6 +66,7 @@ class _Seed:
     stopped_early: bool = False
     failure: TrainingDiverged | None = None
     done: bool = False
+    saved: int = 0  # the iteration its checkpoint on disk holds
 
 
 def check_packable(model_cfgs: list[ModelConfig], train_cfgs: list[TrainConfig]) -> None:
@@ -147,6 +149,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
                                       s.history, elapsed(s), s.stopped_early)
         payload["rng"]["torch"] = s.rng_torch
         save_checkpoint(payload, s.path)
+        s.saved = s.iteration
         if on_checkpoint is not None:
             on_checkpoint(k, s.path, s.iteration)
 
@@ -158,30 +161,41 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
     for k, s in enumerate(seeds):
         if s.iteration >= s.cfg.iters or s.stopped_early:  # resumed complete: saved again, as train does
             finish(k)
-    while True:
+    try:
+        while True:
+            for k, s in enumerate(seeds):
+                if not s.done and s.cfg.max_seconds and elapsed(s) >= s.cfg.max_seconds:
+                    log.info("seed %d: time budget of %.0f s reached at iteration %d", s.cfg.seed,
+                             s.cfg.max_seconds, s.iteration)
+                    finish(k)
+            active = [k for k, s in enumerate(seeds) if not s.done]
+            if not active:
+                break
+            with whole_step():  # a Ctrl-C waits for the step: what is checkpointed below is one iteration's
+                losses = _step(pack, data, N, task, kin, seeds, active, opt, clips)
+                for k in active:
+                    s = seeds[k]
+                    if s.failure is None:
+                        s.iteration += 1
+                        s.history["train/loss"].append(losses[k][0])
+                        s.history["train/grad_norm"].append(losses[k][1])
+            for k in active:
+                s = seeds[k]
+                if s.failure is not None:
+                    log.warning("seed %d left the pack: %s", s.cfg.seed, s.failure)
+                    s.done = True
+                    continue
+                _after_step(k, s, pack, task, validation, on_metrics, on_validation, elapsed(s))
+                if s.cfg.checkpoint_every and s.iteration % s.cfg.checkpoint_every == 0 and not s.stopped_early:
+                    save(k)
+                if s.iteration >= s.cfg.iters or s.stopped_early:
+                    finish(k)
+    except KeyboardInterrupt:  # no finished iteration is lost: each seed checkpointed where it stands
         for k, s in enumerate(seeds):
-            if not s.done and s.cfg.max_seconds and elapsed(s) >= s.cfg.max_seconds:
-                log.info("seed %d: time budget of %.0f s reached at iteration %d", s.cfg.seed, s.cfg.max_seconds,
-                         s.iteration)
-                finish(k)
-        active = [k for k, s in enumerate(seeds) if not s.done]
-        if not active:
-            break
-        losses = _step(pack, data, N, task, kin, seeds, active, opt, clips)
-        for k in active:
-            s = seeds[k]
-            if s.failure is not None:
-                log.warning("seed %d left the pack: %s", s.cfg.seed, s.failure)
-                s.done = True
-                continue
-            s.iteration += 1
-            s.history["train/loss"].append(losses[k][0])
-            s.history["train/grad_norm"].append(losses[k][1])
-            _after_step(k, s, pack, task, validation, on_metrics, on_validation, elapsed(s))
-            if s.cfg.checkpoint_every and s.iteration % s.cfg.checkpoint_every == 0 and not s.stopped_early:
+            if not s.done and s.failure is None and s.iteration != s.saved:
+                log.info("seed %d interrupted at iteration %d: checkpointed there", s.cfg.seed, s.iteration)
                 save(k)
-            if s.iteration >= s.cfg.iters or s.stopped_early:
-                finish(k)
+        raise
     return [PackedResult(model=pack.extract(k), history=s.history, seconds=elapsed(s), iterations=s.iteration,
                          stopped_early=s.stopped_early, checkpoint_path=s.path, failure=s.failure)
             for k, s in enumerate(seeds)]
@@ -206,6 +220,7 @@ def _resume(k: int, s: _Seed, pack: PackedSTM, opt: PackedAdam, model_cfg: Model
     s.gen.set_state(ckpt["rng"]["batch"])
     s.history = {key: list(v) for key, v in ckpt["history"].items()}
     s.iteration, s.seconds_before = int(ckpt["iteration"]), float(ckpt["seconds"])
+    s.saved = s.iteration
     s.stopped_early = bool(ckpt.get("stopped_early", False))
     log.info("seed %d: resuming from %s at iteration %d", s.cfg.seed, s.path, s.iteration)
 

@@ -38,6 +38,7 @@ from stm.cell import StackStepper
 from stm.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
+from stm.interrupts import whole_step
 from stm.model import STM, feedback_state, layout_to_dict, normalization_stats
 
 log = logging.getLogger(__name__)
@@ -306,12 +307,16 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
     warmup_cfg = dataclasses.replace(train_cfg, v=0)  # teacher forcing for the first tf_warmup iterations
     t0 = time.perf_counter()
 
+    saved = start_iter  # the iteration the checkpoint on disk holds (at the start: nothing newer to lose)
+
     def save(iteration: int) -> None:
+        nonlocal saved
         if ckpt_path is None:
             return
         payload = _checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history,
                                       seconds_before + time.perf_counter() - t0, stopped_early)
         save_checkpoint(payload, ckpt_path)
+        saved = iteration
         if on_checkpoint is not None:
             on_checkpoint(ckpt_path, iteration)
 
@@ -324,21 +329,22 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
             if train_cfg.max_seconds and seconds_before + time.perf_counter() - t0 >= train_cfg.max_seconds:
                 log.info("time budget of %.0f s reached at iteration %d", train_cfg.max_seconds, iteration)
                 break
-            batch = data.batch(_sample_indices(N, train_cfg.batch_size, gen))
-            schedule_cfg = warmup_cfg if iteration < train_cfg.tf_warmup else train_cfg
-            loss = batch_loss(model, batch, task, schedule_cfg, kin, gen)
-            if not torch.isfinite(loss):
-                raise TrainingDiverged(iteration + 1, "loss")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            clip = train_cfg.grad_clip if train_cfg.grad_clip > 0 else math.inf
-            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
-            if not torch.isfinite(grad_norm):
-                raise TrainingDiverged(iteration + 1, "gradient")
-            opt.step()
-            iteration += 1
-            history["train/loss"].append(loss.item())
-            history["train/grad_norm"].append(grad_norm.item())
+            with whole_step():  # a Ctrl-C waits for the step: the state checkpointed below is one iteration's
+                batch = data.batch(_sample_indices(N, train_cfg.batch_size, gen))
+                schedule_cfg = warmup_cfg if iteration < train_cfg.tf_warmup else train_cfg
+                loss = batch_loss(model, batch, task, schedule_cfg, kin, gen)
+                if not torch.isfinite(loss):
+                    raise TrainingDiverged(iteration + 1, "loss")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                clip = train_cfg.grad_clip if train_cfg.grad_clip > 0 else math.inf
+                grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+                if not torch.isfinite(grad_norm):
+                    raise TrainingDiverged(iteration + 1, "gradient")
+                opt.step()
+                iteration += 1
+                history["train/loss"].append(loss.item())
+                history["train/grad_norm"].append(grad_norm.item())
             bar.update(1)
             if train_cfg.log_every and iteration % train_cfg.log_every == 0:
                 window = history["train/loss"][-train_cfg.log_every:]
@@ -357,6 +363,11 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
                     log.info("stopped early at iteration %d (validation %.4g)", iteration, value)
             if train_cfg.checkpoint_every and iteration % train_cfg.checkpoint_every == 0 and not stopped_early:
                 save(iteration)
+    except KeyboardInterrupt:  # no finished iteration is lost: checkpointed where it stands, then passed on
+        if iteration != saved:
+            log.info("interrupted at iteration %d: checkpointed there", iteration)
+            save(iteration)
+        raise
     finally:
         bar.close()
     save(iteration)

@@ -196,3 +196,38 @@ def test_matmul_share_tells_products_from_elementwise_ops():
     assert matmul_share(lambda: [torch.sigmoid(a) * b for _ in range(5)]) == 0.0
     assert packing_ceiling(0.0, 3) == pytest.approx(3.0) and packing_ceiling(1.0, 3) == pytest.approx(1.0)
     assert packing_ceiling(0.5, 3) == pytest.approx(1.5)
+
+
+def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(toy, tmp_path, monkeypatch):
+    """A Ctrl-C during iteration 5's unroll: the pack finishes that step, checkpoints each seed at 5 (the periodic
+    ones are at 3, 6, ...) and passes the interrupt on; resuming gives the uninterrupted run."""
+    import signal
+    import threading
+
+    import stm.packed_train
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach the main thread only")
+    task, demos = toy
+    model_cfg, cfgs = _configs("ac-lstm-mdn", checkpoint_every=3, feedback="sample")
+    paths = [tmp_path / f"s{s}.pt" for s in SEEDS]
+    full = train_packed(model_cfg, cfgs, task, demos)
+    real, calls = stm.packed_train.packed_unroll, []
+
+    def unroll_then_ctrl_c(*args, **kwargs):
+        calls.append(1)
+        out = real(*args, **kwargs)
+        if len(calls) == 5:  # every seed at one schedule step: one unroll per iteration
+            signal.raise_signal(signal.SIGINT)
+        return out
+
+    monkeypatch.setattr(stm.packed_train, "packed_unroll", unroll_then_ctrl_c)
+    seen = []
+    with pytest.raises(KeyboardInterrupt):
+        train_packed(model_cfg, cfgs, task, demos, checkpoint_paths=paths,
+                     on_checkpoint=lambda k, path, it: seen.append((k, it)))
+    assert sorted(seen) == sorted((k, it) for k in range(len(SEEDS)) for it in (3, 5))
+    monkeypatch.undo()
+    resumed = train_packed(model_cfg, cfgs, task, demos, checkpoint_paths=paths)
+    for f, r in zip(full, resumed, strict=True):
+        _assert_same_run(f, r)

@@ -270,3 +270,39 @@ def test_hold_steps_trains_the_held_demos(toy):
     plain = train(TINY, cfg, task, demos)
     assert held.history["train/loss"] == explicit.history["train/loss"]
     assert held.history["train/loss"] != plain.history["train/loss"]
+
+
+def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(toy, tmp_path, monkeypatch):
+    """A Ctrl-C that lands while iteration 8 computes its loss waits for the step to finish; the training then
+    checkpoints iteration 8 (not the periodic 5) and passes the interrupt on; resuming finishes the run exactly as
+    an uninterrupted one."""
+    import signal
+    import threading
+
+    import stm.train
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach the main thread only")
+    task, demos = toy
+    cfg = TrainConfig(iters=12, batch_size=4, lr=3e-3, u=2, v=2, feedback="sample", checkpoint_every=5,
+                      log_every=1, seed=3)
+    full = train(TINY, cfg, task, demos)
+    real, calls = stm.train.batch_loss, []
+
+    def loss_then_ctrl_c(*args, **kwargs):
+        calls.append(1)
+        out = real(*args, **kwargs)
+        if len(calls) == 8:  # before the backward pass and the optimiser step of iteration 8
+            signal.raise_signal(signal.SIGINT)
+        return out
+
+    monkeypatch.setattr(stm.train, "batch_loss", loss_then_ctrl_c)
+    path, seen = tmp_path / "ckpt.pt", []
+    with pytest.raises(KeyboardInterrupt):
+        train(TINY, cfg, task, demos, checkpoint_path=path, on_checkpoint=lambda p, it: seen.append(it))
+    assert seen == [5, 8] and load_checkpoint(path)["iteration"] == 8
+    monkeypatch.undo()
+    resumed = train(TINY, cfg, task, demos, checkpoint_path=path)
+    assert resumed.history["train/loss"] == full.history["train/loss"]
+    for a, b in zip(resumed.model.state_dict().values(), full.model.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
