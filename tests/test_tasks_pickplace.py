@@ -205,3 +205,29 @@ def test_retreat_starts_are_poised_above_a_goal_in_the_grasp_frame():
     assert get_task("pick-place", retreat_starts=0.5).config() != get_task("pick-place").config()
     with pytest.raises(ValueError, match="retreat_starts must be a fraction"):
         get_task("pick-place", retreat_starts=1.5)
+
+
+def test_goal_switch_demonstrations_replan_to_the_new_goal_after_the_grasp():
+    """The goal_switches lever: a switched demo asks for its first goal (on the table) up to a step between the
+    grasp's close and SWITCH_LATE steps into the lift, then for a new table goal at least MIN_GOAL_SWITCH away;
+    the expert lifts, carries and places the block there (each demo was replayed in physics and kept only if
+    placed there) and retreats."""
+    from envs.tasks.pickplace import MAX_STEPS, MIN_GOAL_SWITCH, MIN_STEPS, SWITCH_LATE, grasp_step
+    from envs.tasks.pickplace_expert import GRASP_HEIGHT, RETREAT, SEGMENTS
+
+    task = get_task("pick-place", n_demos=3, goal_switches=1.0)
+    demos = task.demos(5)
+    assert demos.meta["goal_switches"] == 3 and demos.meta["expert_success"] == 1.0
+    after = sum(SEGMENTS[s] for s in ("lift", "carry", "place", "release", "retreat"))
+    for psi, q, grip, length in zip(demos.psi, demos.q, demos.grip, demos.lengths, strict=True):
+        k = int(np.flatnonzero((psi != psi[0]).any(axis=1))[0])
+        first, new = psi[0], psi[k]
+        assert (psi[:k] == first).all() and (psi[k:] == new).all()
+        assert first[2] == new[2] == level_z(0) and np.hypot(*(new - first)[:2]) >= MIN_GOAL_SWITCH
+        assert grasp_step(MIN_STEPS) <= k <= grasp_step(MAX_STEPS) + SWITCH_LATE and length == k + after
+        assert grip[k] == 1.0 and grip[length] == 0.0  # in hand at the switch, released at the end
+        end_tip = tip_position_np(q[length][None])[0]
+        assert np.allclose(end_tip, new + [0, 0, GRASP_HEIGHT + RETREAT], atol=5e-3)  # above the new goal
+    assert task.config() != get_task("pick-place").config()
+    with pytest.raises(ValueError, match="goal_switches must be a fraction"):
+        get_task("pick-place", goal_switches=-0.1)

@@ -18,6 +18,14 @@ Distributions (documented choices):
   and kept only if it succeeds; failures (IK or physics) are resampled and counted in
   meta["rejections"].
 
+Training-data levers (not the paper's protocol; off by default, so the headline's datasets stay as
+they are): retreat_starts (see sample_starts) and goal_switches: that fraction of the demonstrations
+switches goal as the changing-goal episodes do (envs/tasks/pickplace_changing_goal.py), at a step
+drawn from the first row after the grasp has closed (where the evaluation switches) to SWITCH_LATE
+steps into the lift: both goals on the table, the new one at least MIN_GOAL_SWITCH from the first,
+psi the new goal from the switch on, and the expert's plan from the arm at the switch, block in
+hand, to placing at the new goal (judged there in the physics replay).
+
 Success (physics, after the trajectory and 1 s of settling with the last command held):
 the block's bottom is within 2 cm (xy) and 1 cm (z) of the goal, upright (tilt < 0.2
 rad), the last grip command is open, no finger touches it and the tip is at least 6 cm
@@ -63,6 +71,8 @@ log = logging.getLogger(__name__)
 
 START_JOINT_RANGE = 0.1  # rad, half-width of the start range around NEUTRAL_Q (why 0.1: see envs/tasks/reacher.py)
 RETREAT_STARTS = 0.0  # fraction of starts poised where a previous place ended (see sample_starts)
+SWITCH_LATE = 10  # steps into the lift at which a goal-switch demonstration may still switch
+MIN_GOAL_SWITCH = 0.10  # m between a goal and the goal it switches to
 START_BOX = ((0.30, 0.80), (-0.15, 0.45), (TABLE_TOP_Z + 0.12, 0.35))  # tip at the start (m)
 GOAL_REGION = ((0.50, 0.75), (-0.05, 0.25))  # goal xy ranges (m)
 LEVELS = (0, 1, 2)
@@ -156,15 +166,16 @@ class PickPlace(Task):
     )
 
     def __init__(self, n_demos: int = 150, min_steps: int = MIN_STEPS, max_steps: int = MAX_STEPS,
-                 retreat_starts: float = RETREAT_STARTS):
+                 retreat_starts: float = RETREAT_STARTS, goal_switches: float = 0.0):
         if n_demos < 1:
             raise ValueError(f"n_demos must be >= 1, got {n_demos}")
         if not FIXED_STEPS + 10 <= min_steps <= max_steps:
             raise ValueError(f"need {FIXED_STEPS + 10} <= min_steps <= max_steps, got {min_steps}, {max_steps}")
-        if not 0.0 <= retreat_starts <= 1.0:
-            raise ValueError(f"retreat_starts must be a fraction in [0, 1], got {retreat_starts}")
+        for name, value in (("retreat_starts", retreat_starts), ("goal_switches", goal_switches)):
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be a fraction in [0, 1], got {value}")
         self.n_demos, self.min_steps, self.max_steps = n_demos, min_steps, max_steps
-        self.retreat_starts = float(retreat_starts)
+        self.retreat_starts, self.goal_switches = float(retreat_starts), float(goal_switches)
 
     def config(self) -> dict[str, Any]:
         return {
@@ -175,6 +186,8 @@ class PickPlace(Task):
             "finger_friction": FINGER_FRICTION, "gripper_force": GRIPPER_FORCE, "grasp_height": GRASP_HEIGHT,
             "hover_z": HOVER_Z, "retreat": RETREAT, "segments": SEGMENTS, "settle_seconds": SETTLE_SECONDS,
             **({"retreat_starts": self.retreat_starts} if self.retreat_starts else {}),
+            **({"goal_switches": self.goal_switches, "switch_late": SWITCH_LATE, "min_goal_switch": MIN_GOAL_SWITCH}
+               if self.goal_switches else {}),
             "tolerances": {"xy": XY_TOL, "z": Z_TOL, "tilt": MAX_TILT, "away": AWAY},
             "expert": "min-jerk Cartesian segments, full-frame IK, replayed in physics",
         }
@@ -231,7 +244,7 @@ class PickPlace(Task):
         meta: expert_success (1.0: every kept demo succeeded in physics), rejections
         ({"ik": n, "physics": n}), first_try_success, ik_seconds, physics_seconds."""
         rng = np.random.default_rng(seed)
-        accepted: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []
+        accepted: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # q, grip, psi: one row per step
         rejections = {"ik": 0, "physics": 0}
         seconds = {"ik": 0.0, "physics": 0.0}
         while len(accepted) < self.n_demos:
@@ -241,29 +254,54 @@ class PickPlace(Task):
             steps = rng.integers(self.min_steps, self.max_steps + 1, size=need)
             t0 = time.perf_counter()
             q, ok, plans = self.expert(q0, goals, steps)
+            candidates = [(q[b, : steps[b] + 1], plans[b].grip, np.repeat(goals[b][None], steps[b] + 1, axis=0),
+                           bool(ok[b])) for b in range(need)]
+            if self.goal_switches:  # drawn only then, so that the paper's datasets stay as they were
+                candidates = self._switch_some(rng, candidates, steps)
             t1 = time.perf_counter()
-            for b in tqdm(range(need), desc=f"{self.name} demos: physics replay", disable=None, leave=False):
-                if not ok[b]:
+            for path, grip, psi, ok_b in tqdm(candidates, desc=f"{self.name} demos: physics replay", disable=None,
+                                              leave=False):
+                if not ok_b:
                     rejections["ik"] += 1
                     continue
-                path = q[b, : steps[b] + 1]
-                if run_pick_place(path, plans[b].grip, goals[b], level_of(goals[b]))["success"] < 1.0:
+                if run_pick_place(path, grip, psi[-1], level_of(psi[-1]))["success"] < 1.0:
                     rejections["physics"] += 1
                     continue
-                accepted.append((path, plans[b].grip, goals[b], int(steps[b])))
+                accepted.append((path, grip, psi))
             seconds["ik"] += t1 - t0
             seconds["physics"] += time.perf_counter() - t1
         if sum(rejections.values()):
             log.info("%s demos: resampled %s", self.name, rejections)
-        lengths = np.array([a[3] for a in accepted])
+        lengths = np.array([len(a[0]) - 1 for a in accepted])
         T = int(lengths.max())
-        qs = np.stack([pad_rows(a[0], T + 1) for a in accepted])
-        grips = np.stack([pad_rows(a[1], T + 1) for a in accepted])
-        psi = np.repeat(np.stack([a[2] for a in accepted])[:, None], T + 1, axis=1)
+        qs, grips, psi = (np.stack([pad_rows(a[i], T + 1) for a in accepted]) for i in range(3))
         meta = {"rejections": rejections, "expert_success": 1.0, "replayed_in_physics": len(accepted),
                 "first_try_success": len(accepted) / (len(accepted) + sum(rejections.values())),
                 "ik_seconds": seconds["ik"], "physics_seconds": seconds["physics"]}
+        if self.goal_switches:
+            meta["goal_switches"] = int(sum(bool((a[2] != a[2][:1]).any()) for a in accepted))
         return Demos(q=qs, grip=grips, psi=psi, lengths=lengths, meta=meta)
+
+    def _switch_some(self, rng: np.random.Generator, candidates: list, steps: np.ndarray) -> list:
+        """A `goal_switches` fraction of the candidate demonstrations (q, grip, psi, ok) with a goal switch
+        (module docstring); the others as they are."""
+        chosen = np.flatnonzero(rng.random(len(candidates)) < self.goal_switches)
+        if not len(chosen):
+            return candidates
+        first = np.stack([candidates[b][2][0] for b in chosen])
+        first[:, 2] = level_z(0)  # the switch comes before the place: only the goal's xy has been acted on
+        new = sample_new_goals(rng, first)
+        out = list(candidates)
+        for b, goal, new_goal in zip(chosen, first, new, strict=True):
+            q, grip, _, ok = candidates[b]
+            k = grasp_step(int(steps[b])) + int(rng.integers(0, SWITCH_LATE + 1))
+            tip0, rot0 = tip_poses(q[k][None])
+            plan = plan_after_grasp(tip0[0], rot0[0], new_goal)
+            after, after_ok = solve_plans([plan], q[k][None])
+            path = np.concatenate([q[: k + 1], after[0][1:]])
+            psi = np.concatenate([np.repeat(goal[None], k, axis=0), np.repeat(new_goal[None], len(path) - k, axis=0)])
+            out[b] = (path, np.concatenate([grip[: k + 1], plan.grip[1:]]), psi, ok and bool(after_ok[0]))
+        return out
 
     # evaluation --------------------------------------------------------------
     def episodes(self, n: int, seed: int) -> list[Episode]:
@@ -291,6 +329,19 @@ class PickPlace(Task):
         q, grip = check_grip_trajectory(q, grip)
         goal = np.asarray(episode.info.get("goal", episode.psi[-1]), float)
         return run_pick_place(q, grip, goal, int(episode.info.get("level", level_of(goal))))
+
+
+def grasp_step(steps: int) -> int:
+    """The first row after the grasp has closed, in a demonstration of `steps` steps."""
+    return steps - FIXED_STEPS + SEGMENTS["descend"] + SEGMENTS["close"]
+
+
+def sample_new_goals(rng: np.random.Generator, goals: np.ndarray) -> np.ndarray:
+    """A table-level goal (n, 3) for each of `goals`, at least MIN_GOAL_SWITCH (xy) from it."""
+    new = sample_goals_xyz(rng, len(goals), levels=(0,))
+    while (near := np.hypot(*(new - goals)[:, :2].T) < MIN_GOAL_SWITCH).any():
+        new[near] = sample_goals_xyz(rng, int(near.sum()), levels=(0,))
+    return new
 
 
 def level_of(goal: np.ndarray) -> int:

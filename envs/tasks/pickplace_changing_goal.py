@@ -15,20 +15,18 @@ import numpy as np
 
 from envs.tasks.base import Episode, register
 from envs.tasks.pickplace import (
-    FIXED_STEPS,
-    SEGMENTS,
     PickPlace,
     check_grip_trajectory,
+    grasp_step,
     pad_rows,
     plan_after_grasp,
     run_pick_place,
+    sample_new_goals,
     solve_plans,
     tip_poses,
 )
 
 log = logging.getLogger(__name__)
-
-MIN_GOAL_SWITCH = 0.10  # m between goal and new_goal
 
 
 @register
@@ -49,15 +47,13 @@ class PickPlaceChangingGoal(PickPlace):
     @property
     def switch_step(self) -> int:
         """First row after the expert's grasp has closed (for a demo of max_steps)."""
-        return self.max_steps - FIXED_STEPS + SEGMENTS["descend"] + SEGMENTS["close"]
+        return grasp_step(self.max_steps)
 
     def episodes(self, n: int, seed: int) -> list[Episode]:
         rng = np.random.default_rng(seed)
         q0 = self.sample_starts(rng, n)
         goals = self.sample_goals(rng, n, levels=(0,))
-        new_goals = self.sample_goals(rng, n, levels=(0,))
-        while (near := np.hypot(*(new_goals - goals)[:, :2].T) < MIN_GOAL_SWITCH).any():
-            new_goals[near] = self.sample_goals(rng, int(near.sum()), levels=(0,))
+        new_goals = sample_new_goals(rng, goals)
         H, k, out = self.horizon, self.switch_step, []
         for i in range(n):
             psi = np.repeat(goals[i][None], H + 1, axis=0)
