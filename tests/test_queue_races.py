@@ -74,16 +74,25 @@ def test_a_stale_trial_fails_only_its_dead_workers_runs_and_is_requeued(store, t
 
 
 @pytest.mark.parametrize("released", [False, True], ids=["holder-died", "holder-gave-up"])
-def test_a_waiter_takes_over_a_dead_holders_failed_run_but_not_a_released_one(store, released):
+def test_a_waiter_takes_over_a_dead_holders_failed_run_but_not_a_released_one(store, released, monkeypatch):
+    import experiments.claims as claims
     from experiments.claims import Claimed, acquire, latest_claim
 
     uri, client, exp = store
     run_id = client.create_run(exp).info.run_id
     # a holder on another host (its process cannot be checked): live until its beat is `grace` old
     _claimed(client, run_id, 1, "elsewhere:7:a")
+    waiting = threading.Event()
+    real_sleep = claims.time.sleep
 
-    def holder_stops() -> None:  # while this process waits
-        time.sleep(0.5)
+    def waiter_sleeps(seconds: float) -> None:  # acquire sleeps once it has seen the holder and waits for it
+        waiting.set()
+        real_sleep(seconds)
+
+    monkeypatch.setattr(claims.time, "sleep", waiter_sleeps)
+
+    def holder_stops() -> None:  # while this process waits for it, however slow the machine
+        waiting.wait(timeout=60)
         if released:  # its own attempt failed: it says so and gives up its claim
             client.set_terminated(run_id, "FAILED")
             client.set_tag(run_id, "claim.beat", "1:done")
