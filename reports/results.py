@@ -63,20 +63,16 @@ from pathlib import Path
 import pandas as pd
 
 from envs.fileio import atomic_write_text
-from experiments.stats import SUCCESS_NOTE
 from reports import (
-    data_scaling,
     figures,
-    goal_switch,
-    levers,
     milestones,
     multimodal,
     paper,
-    stacking,
     sweeps,
     tables,
     trajectories,
 )
+from reports.across import ACROSS, at_iteration, whole_study
 from reports.plotting import FigureResult, plt
 from reports.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.provenance import provenance_table
@@ -88,51 +84,6 @@ from reports.template import MULTI_STUDY, SWEEP_FIGURES, Placeholder, ResultsErr
 
 log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True)
-class AcrossStudies:
-    """How a placeholder over several studies of one training task builds its cells, table and figure."""
-
-    name: str  # the figure's name
-    cells: Callable[[list[Study], str], pd.DataFrame]
-    table: Callable[[pd.DataFrame], pd.DataFrame]
-    figure: Callable[[pd.DataFrame, str, Path], FigureResult]
-    error: type[Exception]  # what cells raises when the studies cannot be put side by side
-    note: Callable[[str], str]  # the table's columns explained, for a task
-    out_name: Callable[[str, list[Study]], str]  # the figure's file name
-
-
-ACROSS = {  # template.MULTI_STUDY's placeholders
-    "data_scaling": AcrossStudies(
-        data_scaling.NAME, data_scaling.scaling_cells, data_scaling.scaling_table, data_scaling.scaling_figure,
-        data_scaling.DataScalingError,
-        lambda task: f"demos: the demonstrations the {task} model trained on; {SUCCESS_NOTE}",
-        lambda task, studies: f"{file_safe(task)}_data_scaling"),
-    "lever": AcrossStudies(
-        levers.NAME, levers.lever_cells, levers.lever_table, levers.lever_figure, levers.LeverError,
-        lambda task: (f"setting: what sets the study's {task} runs of that variant apart from the other studies "
-                      f"named here (their params; one not logged is at its default); {SUCCESS_NOTE}"),
-        lambda task, studies: f"{file_safe(task)}_lever_{file_safe(studies[-1].name)}"),
-    "goal_switch": AcrossStudies(
-        goal_switch.NAME, goal_switch.switch_cells, goal_switch.switch_table, goal_switch.switch_figure,
-        levers.LeverError,
-        lambda task: (f"the {goal_switch.EVAL_TASK} episodes of the {task} models, pooled over seeds; setting: as "
-                      f"in the lever table; never set off (under {goal_switch.SET_OFF:.0%} of the way to the new "
-                      f"goal at the end), still moving (faster than {goal_switch.MOVING * 1000:g} mm per step over "
-                      f"the last {goal_switch.TAIL}): shares of the failed episodes; progress: 1 - distance to the "
-                      f"new goal at the end / at the switch; steps to half-way: after the switch, '–' when most "
-                      f"never get there."),
-        lambda task, studies: f"{file_safe(task)}_goal_switch_{file_safe(studies[-1].name)}"),
-    "stacking": AcrossStudies(
-        stacking.NAME, stacking.stacking_cells, stacking.stacking_table, stacking.stacking_figure, levers.LeverError,
-        lambda task: (f"the {stacking.EVAL_TASK} episodes of the {task} models, pooled over seeds; setting: as in "
-                      f"the lever table; came for block k: the tool tip within {stacking.REACH * 100:g} cm of the "
-                      f"point where block k is grasped during its sub-episode (each next block starts where the "
-                      f"last place ended); tower of at least k: blocks standing as a tower from the bottom up; "
-                      f"closest approach: the tip's, to each block's grasp point."),
-        lambda task, studies: f"{file_safe(task)}_stacking_{file_safe(studies[-1].name)}"),
-}
-assert set(ACROSS) == set(MULTI_STUDY), "every multi-study placeholder of the template language is built here"
 
 DEFAULT_TEMPLATE = Path("reports/RESULTS.template.md")
 DEFAULT_RESULTS = Path("reports/RESULTS.md")
@@ -359,18 +310,13 @@ def regeneration_command(ablation: Study | None, sweeps_used: list[Study], templ
     return shlex.join(args).replace("'$MLFLOW_TRACKING_URI'", '"$MLFLOW_TRACKING_URI"')
 
 
-def whole_study(name: str) -> str:
-    """The study a template's NAME@ITERATION is a stage of (NAME itself when it names no iteration)."""
-    return name.partition("@")[0]
-
-
 NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milestones study: its runs are cells too)
 
 
 def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dict[str, Study]:
     """The studies the template names (study="NAME", and those of the MULTI_STUDY placeholders), each checked to
     be of a NAMED_KINDS kind in the store; NAME@ITERATION: a milestones study's checkpoints kept at that
-    iteration (Study.at_iteration), beside the whole study under NAME (what provenance lists)."""
+    iteration (reports.across.at_iteration), beside the whole study under NAME (what provenance lists)."""
     named: dict[str, Study] = {}
     for ph in placeholders:
         for name in ph.studies:
@@ -381,7 +327,7 @@ def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dic
                 if iteration and name not in named:
                     if not iteration.isdigit():
                         raise StoreError(f"{name!r}: the iteration after '@' must be a whole number")
-                    named[name] = named[base].at_iteration(int(iteration))
+                    named[name] = at_iteration(named[base], int(iteration))
             except StoreError as exc:
                 raise ResultsError(f"{ph}: {exc}") from None
     return named

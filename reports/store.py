@@ -43,14 +43,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from experiments.tracking import (
-    DEFAULT_TRACKING_URI,
-    FAILED_STATUSES,
-    MILESTONE_ITERATION,
-    PARENT_TAG,
-    sqlite_path,
-    tracking_uri,
-)
+from experiments.tracking import DEFAULT_TRACKING_URI, FAILED_STATUSES, PARENT_TAG, sqlite_path, tracking_uri
 
 log = logging.getLogger(__name__)
 
@@ -134,17 +127,6 @@ class Study:
     @property
     def seeds(self) -> list[int]:
         return sorted(int(s) for s in self.children["seed"].dropna().unique())
-
-    def at_iteration(self, iteration: int) -> Study:
-        """A milestones study's runs of the checkpoints kept at `iteration`, as a study named NAME@ITERATION
-        (so that a table can set one stage of training beside a study trained that long)."""
-        col = f"params.{MILESTONE_ITERATION}"
-        kept = self.children[col].dropna().astype(int) if col in self.children else pd.Series(dtype=int)
-        if iteration not in set(kept):
-            listed = ", ".join(str(i) for i in sorted(set(kept))) or "none: not a milestones study"
-            raise StoreError(f"study {self.name!r} has no runs at iteration {iteration} (kept: {listed})")
-        return Study(self.experiment, {**self.parent, "tags.study_name": f"{self.name}@{iteration}"},
-                     self.children[self.children[col].astype(float) == iteration], self.client)
 
     # ---------------------------------------------------------------- metrics
     def metric_history(self, run_id: str, key: str) -> pd.DataFrame:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 
 FIXED = ("provenance", "command")
-# placeholders whose arguments are a training task, then the studies (reports.results.ACROSS: reports.data_scaling,
+# placeholders whose arguments are a training task, then the studies (reports.across.ACROSS: reports.data_scaling,
 # reports.levers, reports.goal_switch, reports.stacking)
 MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking")
 # name -> (min, max) arguments

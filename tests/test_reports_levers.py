@@ -6,6 +6,7 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
+from reports.across import at_iteration
 from reports.levers import LeverError, setting_labels, study_settings
 from reports.store import Study
 
@@ -67,19 +68,20 @@ def test_a_milestones_stage_is_set_beside_a_study_trained_that_long():
     lever = _study("switches", **{"train.iters": "5000", "data.goal_switches": "0.5"})
     with pytest.raises(LeverError, match="several iterations .5000, 10000.; name one as paper-milestones@ITERATION"):
         setting_labels([milestones, lever], "reacher")
-    at5k = milestones.at_iteration(5000)
+    at5k = at_iteration(milestones, 5000)
     assert at5k.name == "paper-milestones@5000" and len(at5k.children) == 2
     assert study_settings(at5k, "reacher", "lstm")["train.iters"] == "5000"
     assert setting_labels([at5k, lever], "reacher") == {("paper-milestones@5000", "lstm"): "goal_switches=0",
                                                         ("switches", "lstm"): "goal_switches=0.5"}
     with pytest.raises(StoreError, match="no runs at iteration 7000 .kept: 5000, 10000."):
-        milestones.at_iteration(7000)
+        at_iteration(milestones, 7000)
     with pytest.raises(StoreError, match="kept: none: not a milestones study"):
-        lever.at_iteration(5000)
+        at_iteration(lever, 5000)
 
 
 def test_a_template_names_a_stage_and_provenance_keeps_the_whole_study():
-    from reports.results import _named_studies, whole_study
+    from reports.across import whole_study
+    from reports.results import _named_studies
     from reports.template import Placeholder, ResultsError
 
     stages = pd.concat([_study("m", **{"milestone.iteration": str(it)}).children for it in (5000, 10000)],
