@@ -7,7 +7,9 @@ or SQLite state), and stopped with their main process.
   sees that its holder is gone).
 - Stop (Ctrl-C in the main process): `stop` is set; a busy worker is interrupted (a training
   cell finishes its step and checkpoints there: stm/interrupts.py; the cell is marked KILLED,
-  resumable), an idle one exits. A worker that does not stop within GRACE seconds exits anyway.
+  resumable), an idle one exits. Ctrl-C in a terminal reaches the workers too: a worker acts on the
+  first interrupt only, so the second (the main process's) cannot cut its checkpoint short. A worker
+  still busy GRACE seconds after the stop exits anyway.
 """
 
 from __future__ import annotations
@@ -24,9 +26,12 @@ from concurrent.futures import Future, ProcessPoolExecutor
 
 from experiments.validation import ConfigError
 
-GRACE = 10.0  # seconds an interrupted worker gets to mark its run before it exits anyway
+# seconds an interrupted worker gets to checkpoint its cells and mark its runs before it exits anyway: a
+# pick-and-place pack stores a checkpoint of several MB per seed, on a store other workers write to as well
+GRACE = 120.0
 POLL = 0.5
 _busy = threading.Event()
+_stopping = threading.Event()  # this worker has been interrupted once and is on its way out
 WORKERS_ENV = "ACRMDN_WORKERS"
 
 
@@ -42,7 +47,10 @@ def default_workers() -> int:
 
 
 def _on_sigint(signum, frame) -> None:
+    if _stopping.is_set():
+        return  # interrupted already: the cell is checkpointing, and a second interrupt would cut that short
     if _busy.is_set():
+        _stopping.set()
         raise KeyboardInterrupt  # the running cell or trial records the interruption
     os._exit(130)
 
@@ -52,9 +60,11 @@ def _watch(parent: int, stop) -> None:
         if os.getppid() != parent:  # reparented: the main process is gone
             os._exit(1)
         if stop.is_set():
-            if _busy.is_set():
+            if _busy.is_set() and not _stopping.is_set():
                 _thread.interrupt_main()  # runs _on_sigint in the main thread
-                time.sleep(GRACE)
+            deadline = time.monotonic() + GRACE
+            while _busy.is_set() and time.monotonic() < deadline:  # _call exits once the cell has recorded it
+                time.sleep(POLL)
             os._exit(130)
         time.sleep(POLL)
 

@@ -1,7 +1,8 @@
 """Concurrency and process faults on one machine (issue 19), each by real processes on a real
 SQLite store: a working directory we may not write to, studies racing on a fresh store's
 schema, two identical studies at once, the main process killed with SIGKILL while its workers
-train, a missing store folder or a corrupt database, and pybullet's banner on one-line errors."""
+train, a Ctrl-C that reaches a worker twice while it checkpoints, a missing store folder or a corrupt
+database, and pybullet's banner on one-line errors."""
 
 from __future__ import annotations
 
@@ -233,3 +234,51 @@ def test_workers_stop_when_the_main_process_is_killed(tmp_path):
     time.sleep(2)
     assert steps == {r.info.run_id: max(m.step for m in client.get_metric_history(r.info.run_id, "train/loss"))
                      for r in _cells(client)}  # nothing writes to the store any more
+
+
+_INTERRUPTED_WORKER = '''
+import sys
+import time
+from pathlib import Path
+
+from experiments.procs import worker_pool
+
+
+def cell(out):
+    Path(out, "started").write_text("")
+    try:
+        while True:
+            time.sleep(0.05)
+    except KeyboardInterrupt:  # what a cell does on Ctrl-C: checkpoint where it stands, which takes a while
+        time.sleep(12)
+        Path(out, "saved").write_text("")
+        raise
+
+
+if __name__ == "__main__":
+    with worker_pool(1) as pool:
+        pool.submit(cell, sys.argv[1]).result()
+'''
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_a_terminal_lets_a_worker_finish_its_checkpoint(tmp_path):
+    # Ctrl-C reaches the main process and the worker at once; the main process then stops the worker a second
+    # time. Before: that second interrupt, or a 10 s limit, cut the worker's checkpoint short
+    script = tmp_path / "study.py"
+    script.write_text(_INTERRUPTED_WORKER)
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path)], env=_env(tmp_path),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while not (tmp_path / "started").exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()[-2000:]
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)  # the whole group, as a terminal does
+        proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert (tmp_path / "saved").exists(), proc.stderr.read()[-2000:]
