@@ -11,11 +11,12 @@ auto-conditioning with u = v = 2 and u = v = 5, and a plain reference (nn.LSTM +
 linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three
 schedules for a pack of K = 3 models trained together (stm.packed): packed_speedup_* =
 (K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the lower of the two
-auto-conditioned schedules'; matmul_share_ac_u5v5 is the share of one model's a.c. iteration
-spent in matrix products (torch.profiler; a lower bound) and packed_speedup_ceiling the most a pack
-of K could then gain (Amdahl: products cost K-fold, the rest once). Then 1,000 reacher rollouts
-of 70 steps with FK grounding, and 3 models' rollouts batched (stm.packed_rollout) against one
-after the other, for 1,000 and for 34 episodes (an evaluation cell's).
+auto-conditioned schedules'; window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the
+whole demos over one on windows of 40 steps after a 20-step burn-in (stm.windows); matmul_share_ac_u5v5
+is the share of one model's a.c. iteration spent in matrix products (torch.profiler; a lower bound) and
+packed_speedup_ceiling the most a pack of K could then gain (Amdahl: products cost K-fold, the rest
+once). Then 1,000 reacher rollouts of 70 steps with FK grounding, and 3 models' rollouts batched
+(stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an evaluation cell's).
 
 Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
 time also counts the other processes' load. Ratios are what to read.
@@ -95,6 +96,7 @@ class PlainMDN(nn.Module):
 
 
 PACK = 3  # models per pack
+WINDOW = (40, 20)  # windowed training's case: window, burn-in (steps)
 EVAL_EPISODES = 34  # episodes a cell evaluates per seed: where batching the K models pays (1,000 are compute-bound)
 CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
 _clock = CLOCKS["cpu"]
@@ -119,12 +121,13 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin):
     opt, clips, active = PackedAdam(params, [1e-4] * PACK), torch.ones(PACK), torch.arange(PACK)
     gens = [torch.Generator().manual_seed(seed) for seed in range(PACK)]
     states, q, psi, mask = (t.expand(PACK, *t.shape) for t in (batch.states, batch.q, batch.psi, batch.mask))
+    burn = None if batch.burn is None else tuple(t.expand(PACK, *t.shape) for t in batch.burn)
     steps = [batch.mask.shape[1]] * PACK
 
     def make(cfg: TrainConfig):
         def step():
             view = pack.view()
-            raw = packed_unroll(view, states, q, psi, steps, task, cfg, kin, gens)
+            raw = packed_unroll(view, states, q, psi, steps, task, cfg, kin, gens, burn=burn)
             losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask)
             for p in params:
                 p.grad = None
@@ -192,8 +195,12 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
 
     schedules = {"tf": TrainConfig(v=0), "ac_u2v2": TrainConfig(u=2, v=2), "ac_u5v5": TrainConfig(u=5, v=5)}
     packed = _packed_step(task, stats, model.config, batch, kin)
+    window, burn_in = WINDOW
+    windows = data.windows(torch.arange(spec["batch"]), window, burn_in, torch.Generator().manual_seed(0))
+    windowed = _packed_step(task, stats, model.config, data.window_batch(torch.arange(spec["batch"]), windows), kin)
     cases = {"plain": plain_step, **{k: stm_step(c) for k, c in schedules.items()},
-             **{f"packed_{k}": packed(c) for k, c in schedules.items()}}
+             **{f"packed_{k}": packed(c) for k, c in schedules.items()},
+             "packed_ac_u5v5_window": windowed(schedules["ac_u5v5"])}
     for fn in cases.values():  # warm-up
         fn()
     times: dict[str, list[float]] = {k: [] for k in cases}
@@ -217,6 +224,10 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "packed_speedup_ceiling": round(packing_ceiling(share, PACK), 3),
         "packed_ratio_ac_u2v2_over_tf": round(med["packed_ac_u2v2"] / med["packed_tf"], 3),
         "packed_ratio_ac_u5v5_over_tf": round(med["packed_ac_u5v5"] / med["packed_tf"], 3),
+        # windowed training (stm.windows): an iteration on windows of `window` steps after a burn-in, against
+        # one on the whole demos (the paper's); how much it learns per iteration is the lever study's question
+        "window": window, "burn_in": burn_in,
+        "window_speedup_packed_ac_u5v5": round(med["packed_ac_u5v5"] / med["packed_ac_u5v5_window"], 3),
         # the clock's seconds per 1,000 auto-conditioned iterations of the whole pack (CPU seconds with --clock cpu)
         "packed_seconds_per_1000_ac_iters": {k: round(med[f"packed_{k}"] * 1e3, 1) for k in ("ac_u2v2", "ac_u5v5")},
     }
@@ -291,7 +302,8 @@ def main(argv: list[str] | None = None) -> dict:
                   + ", ".join(f"{k} {v:.1f} ms" for k, v in ms.items())
                   + f" | ac2/tf {r['ratio_ac_u2v2_over_tf']:.2f}, ac5/tf {r['ratio_ac_u5v5_over_tf']:.2f},"
                   f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
-                  f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f}")
+                  f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f} | windows of {r['window']} "
+                  f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
         if "rollouts" in result:
             ro = result["rollouts"]
             print(f"rollouts: {ro['rollouts']} x {ro['steps']} steps with FK grounding in {ro['seconds']:.2f} s; "

@@ -18,6 +18,7 @@ from stm import mdn
 from stm.model import STM, feedback_state
 from stm.packed_cell import PackedStackStepper, layer_sequence
 from stm.train import _STEPPED_GT_CHUNK
+from stm.windows import burn_in_state
 
 
 class PackedSTM(nn.Module):
@@ -157,11 +158,13 @@ def fused_sequence(view: PackView, z: torch.Tensor, h: list[torch.Tensor] | None
 
 
 def packed_unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Tensor, steps: list[int],
-                  task, cfg, kin, gens: list[torch.Generator]) -> torch.Tensor:
+                  task, cfg, kin, gens: list[torch.Generator],
+                  burn: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Head outputs (K, B, T, out) of K models, each under cfg's (u, v) schedule, as
     stm.train.unroll gives per model. states (K, B, T+1, D), q (K, B, T+1, 7), psi (K, B, T+1, P):
     each model's batch padded to the longest; steps[k] = model k's own T (its input noise and
-    samples are drawn for its own steps only, from gens[k], so each generator advances as alone)."""
+    samples are drawn for its own steps only, from gens[k], so each generator advances as alone).
+    burn: windows' burn-in (stm.windows), raw states (K, B, n, D) and where they are valid."""
     K, B, T1, D = states.shape
     T = T1 - 1
     mean = view.state_mean
@@ -172,11 +175,13 @@ def packed_unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: to
         for k in range(K):
             noise[k, :, : steps[k]] = cfg.input_noise * torch.randn((B, steps[k], D), generator=gens[k])
         z_gt = z_gt + noise
-    if cfg.v == 0:
-        return view.head(fused_sequence(view, z_gt)[0])
     centred = z_gt * view.state_std if noisy else states[:, :, :-1] - mean  # the stepper folds in the std
     stepper = PackedStackStepper(view.lstm, view.state_std)
     hl, cl = stepper.zeros(centred)
+    if burn is not None:
+        hl, cl = burn_in_state(PackedStackStepper(view.lstm, view.state_std), burn[0] - mean, burn[1], hl, cl)
+    if cfg.v == 0:
+        return view.head(fused_sequence(view, z_gt, *((hl, cl) if burn is not None else ()))[0])
     hs: list[torch.Tensor] = []  # top hidden states, chunks (K, B, n, H)
     layout = task.layout
     dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start

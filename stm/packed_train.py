@@ -31,6 +31,7 @@ from stm.interrupts import whole_step
 from stm.model import STM, normalization_stats
 from stm.packed import PackedAdam, PackedSTM, clip_per_model, packed_unroll
 from stm.train import (
+    Batch,
     DemoTensors,
     TrainingDiverged,
     TrainResult,
@@ -39,6 +40,7 @@ from stm.train import (
     _checkpoint_payload,
     _sample_indices,
 )
+from stm.windows import Windows
 
 log = logging.getLogger(__name__)
 
@@ -92,13 +94,15 @@ def _init_models(model_cfg: ModelConfig, cfgs: list[TrainConfig], task: Task, st
     return models, rngs
 
 
-def _batch(data: DemoTensors, idx: list[torch.Tensor]):
-    """Per-seed batches stacked (K, B, T+1, .), padded to the longest; each seed's own T."""
-    steps = [int(data.lengths[i].max()) for i in idx]
-    T = max(steps)
+def _batch(data: DemoTensors, idx: list[torch.Tensor], windows: list[Windows] | None = None) -> Batch:
+    """Per-seed batches stacked (K, B, T+1, .), padded to the longest, or per-seed windows of them (stm.windows)."""
     ix = torch.stack(idx)
+    if windows is not None:
+        return data.window_batch(ix, Windows(*(torch.stack([getattr(w, f.name) for w in windows])
+                                               for f in dataclasses.fields(Windows))))
+    T = int(data.lengths[ix].max())
     mask = torch.arange(T)[None, None, :] < data.lengths[ix][..., None]
-    return data.states[ix, : T + 1], data.q[ix, : T + 1], data.psi[ix, : T + 1], mask, steps
+    return Batch(data.states[ix, : T + 1], data.q[ix, : T + 1], data.psi[ix, : T + 1], mask)
 
 
 def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Task, demos: Demos, *,
@@ -229,6 +233,8 @@ def _step(pack: PackedSTM, data: DemoTensors, N: int, task: Task, kin, seeds: li
           opt: PackedAdam, clips: torch.Tensor) -> dict[int, tuple[float, float]]:
     """One iteration of the active seeds: per seed (loss, grad norm); sets failure where non-finite."""
     idx = {k: _sample_indices(N, seeds[k].cfg.batch_size, seeds[k].gen) for k in active}
+    windows = {k: data.windows(idx[k], s.cfg.window, s.cfg.burn_in, s.gen) for k in active  # after idx, as train
+               if (s := seeds[k]).cfg.window}
     groups: dict[tuple[int, int], list[int]] = {}
     for k in active:  # seeds at the same schedule step share one unroll
         c = seeds[k].cfg
@@ -240,9 +246,11 @@ def _step(pack: PackedSTM, data: DemoTensors, N: int, task: Task, kin, seeds: li
         cfg = dataclasses.replace(seeds[ks[0]].cfg, u=u, v=v)
         sel = None if ks == list(range(pack.K)) else torch.tensor(ks)
         view = pack.view(sel)
-        states, q, psi, mask, steps = _batch(data, [idx[k] for k in ks])
-        raw = packed_unroll(view, states, q, psi, steps, task, cfg, kin, [seeds[k].gen for k in ks])
-        losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask)
+        batch = _batch(data, [idx[k] for k in ks], [windows[k] for k in ks] if windows else None)
+        steps = [int(m.sum(-1).max()) for m in batch.mask]  # each seed's own T: its noise and samples
+        raw = packed_unroll(view, batch.states, batch.q, batch.psi, steps, task, cfg, kin, [seeds[k].gen for k in ks],
+                            burn=batch.burn)
+        losses = view.losses(raw, view.normalize(batch.states[:, :, 1:]), batch.mask)
         finite = torch.isfinite(losses.detach())
         for j, k in enumerate(ks):
             if not finite[j]:

@@ -40,6 +40,7 @@ from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.interrupts import whole_step
 from stm.model import STM, feedback_state, layout_to_dict, normalization_stats
+from stm.windows import Windows, burn_in_state, sample_windows, take_steps
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +66,14 @@ class TrainResult:
 @dataclass
 class Batch:
     """Tensors of a batch of demos, cropped to the longest: states (B, T+1, D) raw units,
-    q (B, T+1, 7), psi (B, T+1, P), mask (B, T) True where transition t -> t+1 is valid."""
+    q (B, T+1, 7), psi (B, T+1, P), mask (B, T) True where transition t -> t+1 is valid.
+    Windows of demos (stm.windows) carry their burn-in: raw states (B, n, D) and where they are valid."""
 
     states: torch.Tensor
     q: torch.Tensor
     psi: torch.Tensor
     mask: torch.Tensor
+    burn: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 @dataclass
@@ -99,6 +102,24 @@ class DemoTensors:
         mask = torch.arange(T)[None, :] < lengths[:, None]
         return Batch(self.states[idx, : T + 1], self.q[idx, : T + 1], self.psi[idx, : T + 1], mask)
 
+    def windows(self, idx: torch.Tensor, window: int, burn_in: int, generator: torch.Generator) -> Windows:
+        return sample_windows(self.lengths[idx], window, burn_in, generator, self.states.shape[1] - 1)
+
+    def window_batch(self, idx: torch.Tensor, windows: Windows) -> Batch:
+        """The windows of demos idx (self.windows), cropped to the longest, with their burn-in."""
+        T = windows.longest
+        steps = windows.steps[..., : T + 1]
+        states = self.states[idx]
+        burn = (take_steps(states, windows.burn), windows.burn_valid) if windows.burn.shape[-1] else None
+        return Batch(take_steps(states, steps), take_steps(self.q[idx], steps), take_steps(self.psi[idx], steps),
+                     windows.mask[..., :T], burn)
+
+    def sample(self, n: int, cfg: TrainConfig, generator: torch.Generator) -> Batch:
+        """A training batch: cfg.batch_size demos, or windows of them when cfg.window is set."""
+        idx = _sample_indices(n, cfg.batch_size, generator)
+        return self.window_batch(idx, self.windows(idx, cfg.window, cfg.burn_in, generator)) if cfg.window \
+            else self.batch(idx)
+
 
 def schedule(T: int, u: int, v: int) -> torch.Tensor:
     """(T,) bool: True where input step t is ground truth ([gt]*u + [self]*v repeated)."""
@@ -121,8 +142,13 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
     if noisy:
         z_gt = z_gt + cfg.input_noise * torch.randn(z_gt.shape, generator=generator)
     T = z_gt.shape[1]
+    hl = cl = None  # per-layer (h, c) lists: zero states, or where a window's burn-in leaves them
+    if batch.burn is not None:
+        zeros = [z_gt.new_zeros(z_gt.shape[0], model.lstm.hidden_size)] * model.lstm.num_layers
+        hl, cl = burn_in_state(StackStepper(model.lstm, model.state_std), batch.burn[0] - model.state_mean,
+                               batch.burn[1], zeros, zeros)
     if cfg.v == 0:
-        raw, _ = model(z_gt)
+        raw, _ = model(z_gt, None if hl is None else (torch.stack(hl), torch.stack(cl)))
         return (raw, z_gt) if return_inputs else raw
     # Per self-fed step: predicted dq (and grip; and phi if "free") -> fed-back state (raw units)
     # -> one step of the LSTM stack. Set up once here, inside the autograd graph: a predictor
@@ -139,7 +165,6 @@ def unroll(model: STM, batch: Batch, task: Task, cfg: TrainConfig, kin, generato
     mean = model.state_mean
     centred_gt = z_gt * model.state_std if noisy else batch.states[:, :-1] - mean  # ground truth for the stepper
     hs, fed = [], []  # top hidden states (pieces of (B, n, H)) and the self-fed (t, state) pairs
-    hl = cl = None  # per-layer (h, c) lists
     runs = iter(torch.unique_consecutive(schedule(T, cfg.u, cfg.v), return_counts=True)[1].tolist())  # gt, self, ...
     t = 0
     while t < T:
@@ -330,7 +355,7 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
                 log.info("time budget of %.0f s reached at iteration %d", train_cfg.max_seconds, iteration)
                 break
             with whole_step():  # a Ctrl-C waits for the step: the state checkpointed below is one iteration's
-                batch = data.batch(_sample_indices(N, train_cfg.batch_size, gen))
+                batch = data.sample(N, train_cfg, gen)
                 schedule_cfg = warmup_cfg if iteration < train_cfg.tf_warmup else train_cfg
                 loss = batch_loss(model, batch, task, schedule_cfg, kin, gen)
                 if not torch.isfinite(loss):

@@ -63,8 +63,10 @@ def _assert_same_run(single, packed):
     ("ac-lstm-mdn", {"feedback": "sample", "input_noise": 0.1}),  # each seed's own random stream
     ("ac-lstm-mdn", {"u": 3, "v": 2, "grad_clip": 0.05}),  # layer-sequence chunks; clipping active
     ("ac-lstm", {"hold_steps": 3}),  # the pack trains the held demos too
+    ("ac-lstm-mdn", {"window": 5, "burn_in": 3}),  # each seed's own windows, warmed up by their burn-in
+    ("lstm", {"window": 4, "burn_in": 2}),  # teacher forcing from a burnt-in state
 ], ids=["lstm", "ac-lstm", "lstm-mdn", "ac-lstm-mdn", "ac-lstm-mdn-sample-noise", "ac-lstm-mdn-u3-clipped",
-        "ac-lstm-hold"])
+        "ac-lstm-hold", "ac-lstm-mdn-windows", "lstm-windows"])
 def test_packed_training_equals_separate_training(toy, variant, extra):
     task, demos = toy
     model_cfg, cfgs = _configs(variant, **extra)
@@ -185,6 +187,8 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
     assert entry["packed_speedup_ac"] == min(entry["packed_speedup_ac_u2v2"], entry["packed_speedup_ac_u5v5"])
     share = entry["matmul_share_ac_u5v5"]
     assert 0 < share < 1 and entry["packed_speedup_ceiling"] == pytest.approx(1 / (share + (1 - share) / 3), rel=0.01)
+    assert entry["window_speedup_packed_ac_u5v5"] == pytest.approx(ms["packed_ac_u5v5"] / ms["packed_ac_u5v5_window"],
+                                                                   rel=0.02)
     assert '"packed_speedup_ac"' in capsys.readouterr().out
 
 
