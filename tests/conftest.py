@@ -25,8 +25,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import sys
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -141,6 +143,15 @@ def isolated(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
                 tmp = pool / f".{path.name}.{os.getpid()}.tmp"  # xdist workers may return the same entry at once
                 shutil.copy2(path, tmp)
                 os.replace(tmp, pool / path.name)
+
+
+@pytest.fixture
+def sigint_raises() -> Iterator[None]:
+    """SIGINT raises KeyboardInterrupt in this process, as in a terminal: a test run started in the background
+    (`cmd &`, as CI runners may) inherits SIGINT ignored, and an in-process Ctrl-C test would see nothing."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
 
 
 def _built_once(name: str, build) -> tuple[Path, str]:

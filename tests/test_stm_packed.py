@@ -202,7 +202,9 @@ def test_matmul_share_tells_products_from_elementwise_ops():
     assert packing_ceiling(0.5, 3) == pytest.approx(1.5)
 
 
-def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(toy, tmp_path, monkeypatch):
+def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(
+    toy, tmp_path, monkeypatch, sigint_raises
+):
     """A Ctrl-C during iteration 5's unroll: the pack finishes that step, checkpoints each seed at 5 (the periodic
     ones are at 3, 6, ...) and passes the interrupt on; resuming gives the uninterrupted run."""
     import signal

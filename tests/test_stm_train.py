@@ -272,7 +272,9 @@ def test_hold_steps_trains_the_held_demos(toy):
     assert held.history["train/loss"] != plain.history["train/loss"]
 
 
-def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(toy, tmp_path, monkeypatch):
+def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(
+    toy, tmp_path, monkeypatch, sigint_raises
+):
     """A Ctrl-C that lands while iteration 8 computes its loss waits for the step to finish; the training then
     checkpoints iteration 8 (not the periodic 5) and passes the interrupt on; resuming finishes the run exactly as
     an uninterrupted one."""
