@@ -104,7 +104,7 @@ def setting_labels(studies: list[Study], task: str) -> dict[tuple[str, str], str
     full = {at: {k: got[k] if k in got else defaults[k] for k in keys} for at, got in found.items()}
     differ = [k for k in keys if any(len({f[k] for (_, v), f in full.items() if v == variant}) > 1
                                      for variant in variants)]
-    labels = {at: ", ".join(_short(k, f[k]) for k in differ) or "as the first" for at, f in full.items()}
+    labels = {at: ", ".join(_short(k, f[k]) for k in differ) or "no setting differs" for at, f in full.items()}
     for variant in variants:
         mine = [(name, label) for (name, v), label in labels.items() if v == variant]
         twins = [name for name, label in mine if [lb for _, lb in mine].count(label) > 1]

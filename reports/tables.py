@@ -280,7 +280,8 @@ def budget_table(study: Study) -> Table:
             planned = group["params.train.iters"].dropna().unique() if "params.train.iters" in group else []
             rows.append([str(task), paper.variant_label(variant), ", ".join(f"{int(p):,}" for p in planned) or "–",
                          " / ".join(_reached(r) for r in group.to_dict("records"))])
-    notes = ["reached: iterations trained per seed (seed 0 / 1 / ...) and the run's status; a running or killed run "
-             "resumes from its last checkpoint when the study's command is run again."]
+    notes = ["reached: iterations trained per seed (seed 0 / 1 / ...) and the run's status (in an export: its status "
+             "when exported); a running or killed run resumes from its last checkpoint when the study's command is "
+             "run again on the store that holds its checkpoints (an export holds none)."]
     return Table("budget_table", "Training iterations per cell", ["task", "variant", "planned", "reached per seed"],
                  rows, notes)

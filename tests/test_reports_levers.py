@@ -30,7 +30,7 @@ def test_labels_name_only_the_settings_that_differ():
                                                     ("c", "lstm"): "goal_switches=0.5, n_demos=150"}
     assert setting_labels([a, _study("d", **{"data.n_demos": "45", "train.u": "1"})], "reacher") == {
         ("a", "lstm"): "train.u=5", ("d", "lstm"): "train.u=1"}
-    assert setting_labels([a], "reacher") == {("a", "lstm"): "as the first"}
+    assert setting_labels([a], "reacher") == {("a", "lstm"): "no setting differs"}
     assert setting_labels([a], "circle") == {}  # no runs of that task
     # the seed and logging cadence differ between runs: never a setting
     settings = study_settings(a, "reacher", "lstm")
