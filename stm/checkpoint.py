@@ -9,13 +9,16 @@ Everything needed to resume bit-exactly and nothing that needs unpickling code.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from envs.fileio import atomic_open
-from stm.config import ModelConfig
-from stm.model import STM, layout_from_dict
+from stm.config import ModelConfig, TrainConfig
+from stm.model import STM, layout_from_dict, layout_to_dict
+
+if TYPE_CHECKING:
+    from envs.tasks.base import Task
 
 FORMAT_VERSION = 1
 
@@ -58,3 +61,40 @@ def model_from_checkpoint(ckpt: dict[str, Any]) -> STM:
 def load_model(path: Path) -> STM:
     """The trained STM stored in a checkpoint (eval mode, CPU)."""
     return model_from_checkpoint(load_checkpoint(path))
+
+
+def checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history, seconds, stopped_early):
+    """What a training checkpoint holds: enough to resume the run exactly (weights, optimiser, both RNG
+    streams, history) and to check that a resume trains the same thing (configs, layout, task)."""
+    return {
+        "format_version": FORMAT_VERSION,
+        "model": model.state_dict(),
+        "optimizer": opt.state_dict(),
+        "model_config": model_cfg.to_dict(),
+        "train_config": train_cfg.to_dict(),
+        "layout": layout_to_dict(task.layout),
+        "task": task.name,
+        "iteration": iteration,
+        "seconds": seconds,
+        "rng": {"torch": torch.get_rng_state(), "batch": gen.get_state()},
+        "history": history,
+        "stopped_early": stopped_early,
+    }
+
+
+_RESUME_FREE = {"iters", "checkpoint_every", "log_every", "val_every", "max_seconds"}  # may change between runs
+
+
+def check_resumable(ckpt: dict, model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, path: Path) -> None:
+    """Refuse to resume from a checkpoint trained with another model, state layout or training setting."""
+    if ckpt["model_config"] != model_cfg.to_dict():
+        raise ValueError(f"checkpoint {path} was trained with another model config: {ckpt['model_config']}")
+    if ckpt["layout"] != layout_to_dict(task.layout):
+        raise ValueError(f"checkpoint {path} has state layout {ckpt['layout']}, task {task.name!r} has another")
+    saved = {**TrainConfig().to_dict(), **ckpt["train_config"]}  # fields added since read as their defaults
+    old = {k: v for k, v in saved.items() if k not in _RESUME_FREE}
+    new = {k: v for k, v in train_cfg.to_dict().items() if k not in _RESUME_FREE}
+    if old != new:
+        diff = sorted(k for k in new if old.get(k) != new[k])
+        raise ValueError(f"checkpoint {path} was trained with other settings ({', '.join(diff)}); "
+                         "delete it or pass resume=False")

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from envs.tasks.base import Demos, Task
-from stm.checkpoint import load_checkpoint, save_checkpoint
+from stm.checkpoint import check_resumable, checkpoint_payload, load_checkpoint, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.interrupts import whole_step
@@ -36,8 +36,6 @@ from stm.train import (
     TrainingDiverged,
     TrainResult,
     Validation,
-    _check_resumable,
-    _checkpoint_payload,
     _sample_indices,
 )
 from stm.windows import Windows
@@ -149,7 +147,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
             return
         model = pack.extract(k)
         opt_state = opt.model_state(k, adam_template)
-        payload = _checkpoint_payload(model, _StateDict(opt_state), model_cfg, s.cfg, task, s.iteration, s.gen,
+        payload = checkpoint_payload(model, _StateDict(opt_state), model_cfg, s.cfg, task, s.iteration, s.gen,
                                       s.history, elapsed(s), s.stopped_early)
         payload["rng"]["torch"] = s.rng_torch
         save_checkpoint(payload, s.path)
@@ -206,7 +204,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
 
 
 class _StateDict:
-    """What _checkpoint_payload reads of an optimiser: state_dict()."""
+    """What checkpoint_payload reads of an optimiser: state_dict()."""
 
     def __init__(self, state: dict):
         self.state = state
@@ -217,7 +215,7 @@ class _StateDict:
 
 def _resume(k: int, s: _Seed, pack: PackedSTM, opt: PackedAdam, model_cfg: ModelConfig, task: Task) -> None:
     ckpt = load_checkpoint(s.path)
-    _check_resumable(ckpt, model_cfg, s.cfg, task, s.path)
+    check_resumable(ckpt, model_cfg, s.cfg, task, s.path)
     pack.load_model_state(k, ckpt["model"])
     opt.load_model_state(k, ckpt["optimizer"])
     s.rng_torch = ckpt["rng"]["torch"]

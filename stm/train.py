@@ -35,11 +35,11 @@ from tqdm.auto import tqdm
 from envs.kinematics import default_kinematics
 from envs.tasks.base import Demos, Episode, Task
 from stm.cell import StackStepper
-from stm.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
+from stm.checkpoint import check_resumable, checkpoint_payload, load_checkpoint, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.interrupts import whole_step
-from stm.model import STM, feedback_state, layout_to_dict, normalization_stats
+from stm.model import STM, feedback_state, normalization_stats
 from stm.windows import Windows, burn_in_state, sample_windows, take_steps
 
 log = logging.getLogger(__name__)
@@ -260,40 +260,6 @@ def _sample_indices(n: int, b: int, gen: torch.Generator) -> torch.Tensor:
     return torch.randint(n, (b,), generator=gen)
 
 
-def _checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history, seconds, stopped_early):
-    return {
-        "format_version": FORMAT_VERSION,
-        "model": model.state_dict(),
-        "optimizer": opt.state_dict(),
-        "model_config": model_cfg.to_dict(),
-        "train_config": train_cfg.to_dict(),
-        "layout": layout_to_dict(task.layout),
-        "task": task.name,
-        "iteration": iteration,
-        "seconds": seconds,
-        "rng": {"torch": torch.get_rng_state(), "batch": gen.get_state()},
-        "history": history,
-        "stopped_early": stopped_early,
-    }
-
-
-_RESUME_FREE = {"iters", "checkpoint_every", "log_every", "val_every", "max_seconds"}  # may change between runs
-
-
-def _check_resumable(ckpt: dict, model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, path: Path) -> None:
-    if ckpt["model_config"] != model_cfg.to_dict():
-        raise ValueError(f"checkpoint {path} was trained with another model config: {ckpt['model_config']}")
-    if ckpt["layout"] != layout_to_dict(task.layout):
-        raise ValueError(f"checkpoint {path} has state layout {ckpt['layout']}, task {task.name!r} has another")
-    saved = {**TrainConfig().to_dict(), **ckpt["train_config"]}  # fields added since read as their defaults
-    old = {k: v for k, v in saved.items() if k not in _RESUME_FREE}
-    new = {k: v for k, v in train_cfg.to_dict().items() if k not in _RESUME_FREE}
-    if old != new:
-        diff = sorted(k for k in new if old.get(k) != new[k])
-        raise ValueError(f"checkpoint {path} was trained with other settings ({', '.join(diff)}); "
-                         "delete it or pass resume=False")
-
-
 def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Demos, *,
           checkpoint_path: Path | None = None, resume: bool = True,
           on_metrics: Callable[[int, dict[str, float]], None] | None = None,
@@ -318,7 +284,7 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
 
     if ckpt_path is not None and resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
-        _check_resumable(ckpt, model_cfg, train_cfg, task, ckpt_path)
+        check_resumable(ckpt, model_cfg, train_cfg, task, ckpt_path)
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         torch.set_rng_state(ckpt["rng"]["torch"])
@@ -338,7 +304,7 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
         nonlocal saved
         if ckpt_path is None:
             return
-        payload = _checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history,
+        payload = checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history,
                                       seconds_before + time.perf_counter() - t0, stopped_early)
         save_checkpoint(payload, ckpt_path)
         saved = iteration
