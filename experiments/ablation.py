@@ -39,8 +39,9 @@ from experiments.tracking import (
     provenance_params,
     runs_page_url,
     set_tags,
-    settle_parent_run,
+    settle_window,
     tracking_uri,
+    wait_for_earlier_runs,
 )
 from experiments.worker import CellResult, mark_killed
 
@@ -74,46 +75,74 @@ def _progress(total: int, enabled: bool):
 
 def prepare_runs(client: Client, experiment_id: str, parent_id: str, cells: list[Cell]
                  ) -> tuple[list[tuple[Cell, str]], list[str]]:
-    """(cell, run id) to run -- an unfinished run of the same config is reused so that it
-    resumes -- and the keys of cells already FINISHED."""
-    by_hash: dict[str, list] = {}
-    for run in child_runs(client, experiment_id, parent_id):
-        by_hash.setdefault(run.data.tags.get("config_hash", ""), []).append(run)
-    todo, skipped = [], []
+    """(cell, run id) to run -- a cell's unfinished run is reused so that it resumes -- and the
+    keys of cells already FINISHED. Commands of one study preparing at once may each create a
+    run for a cell: after the settle window (tracking.settle_window) all see the same earliest
+    and settle on it, so that the cell's claim (experiments/claims.py) is taken on one run; each
+    deletes only the duplicates it created itself."""
+    window, attempts = settle_window(client.uri), 3
+    todo, skipped, pending = [], [], list(cells)
+    for attempt in range(attempts):
+        settled, done, pending = _settle_cells(client, experiment_id, parent_id, pending, window,
+                                               last=attempt == attempts - 1)
+        todo += settled
+        skipped += done
+        if not pending:
+            break
+    return todo, skipped
+
+
+def _settle_cells(client: Client, experiment_id: str, parent_id: str, cells: list[Cell], window: float,
+                  last: bool) -> tuple[list[tuple[Cell, str]], list[str], list[Cell]]:
+    """One round of prepare_runs: (cell, run id) settled, the keys of cells FINISHED, and the cells
+    to settle again (their run was withdrawn: creating it took longer than the window)."""
+    existing = _runs_by_hash(client, experiment_id, parent_id)
+    done = [c.key for c in cells if any(r.info.status == "FINISHED" for r in existing.get(c.config_hash, []))]
+    cells = [c for c in cells if c.key not in done]
+    created, slow = {}, set()
+    for cell in (c for c in cells if c.config_hash not in existing):
+        began = time.time()
+        created[cell.config_hash] = _create_cell_run(client, experiment_id, parent_id, cell)
+        if not last and time.time() - began > window:
+            slow.add(cell.config_hash)  # others may have settled on a later run meanwhile
+    if created:
+        wait_for_earlier_runs(max(r.info.start_time for r in created.values()), window)
+    settled = _runs_by_hash(client, experiment_id, parent_id)
+    out, again = [], []
     for cell in cells:
-        runs = sorted(by_hash.get(cell.config_hash, []), key=lambda r: r.info.start_time, reverse=True)
-        if any(r.info.status == "FINISHED" for r in runs):
-            skipped.append(cell.key)
-            continue
-        tags = {PARENT_TAG: parent_id, "task": cell.task, "variant": cell.variant, "seed": cell.seed,
-                "profile": cell.profile, "config_hash": cell.config_hash, "study_name": cell.study_name,
-                "role": "cell", "eval_tasks": ",".join(cell.eval_tasks)}
-        if runs:  # killed or failed before: resume in the same run
-            run_id = runs[0].info.run_id
+        runs, own = settled.get(cell.config_hash), created.get(cell.config_hash)
+        first = min(runs, key=lambda r: (r.info.start_time, r.info.run_id)) if runs else None
+        if own is not None and first is not None and first.info.run_id != own.info.run_id:
+            _withdraw_cell_run(client, own.info.run_id)
+        elif own is not None and cell.config_hash in slow and _withdraw_cell_run(client, own.info.run_id):
+            first = None
+        if first is None:
+            again.append(cell)
         else:
-            run_id = client.create_run(experiment_id, run_name=cell.key,
-                                       tags={k: str(v) for k, v in tags.items()}).info.run_id
-        todo.append((cell, run_id))
-    return settle_cell_runs(client, experiment_id, parent_id, todo), skipped
+            out.append((cell, first.info.run_id))
+    return out, done, again
 
 
-def settle_cell_runs(client: Client, experiment_id: str, parent_id: str, todo: list[tuple[Cell, str]]
-                     ) -> list[tuple[Cell, str]]:
-    """Two commands of one study preparing at once may each create a run for a cell: both settle
-    on the earliest (as for parent runs) and delete their own duplicate, so that the cell's
-    claim (experiments/claims.py) is taken on one run."""
+def _runs_by_hash(client: Client, experiment_id: str, parent_id: str) -> dict[str, list]:
     by_hash: dict[str, list] = {}
     for run in child_runs(client, experiment_id, parent_id):
         by_hash.setdefault(run.data.tags.get("config_hash", ""), []).append(run)
-    out = []
-    for cell, run_id in todo:
-        runs = by_hash.get(cell.config_hash, [])
-        first = min(runs, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id if runs else run_id
-        if first != run_id and client.get_run(run_id).info.status == "RUNNING" and \
-                not client.get_run(run_id).data.params:
-            client.delete_run(run_id)  # ours, created a moment ago and never started
-        out.append((cell, first))
-    return out
+    return by_hash
+
+
+def _create_cell_run(client: Client, experiment_id: str, parent_id: str, cell: Cell):
+    tags = {PARENT_TAG: parent_id, "task": cell.task, "variant": cell.variant, "seed": cell.seed,
+            "profile": cell.profile, "config_hash": cell.config_hash, "study_name": cell.study_name,
+            "role": "cell", "eval_tasks": ",".join(cell.eval_tasks)}
+    return client.create_run(experiment_id, run_name=cell.key, tags={k: str(v) for k, v in tags.items()})
+
+
+def _withdraw_cell_run(client: Client, run_id: str) -> bool:
+    """Delete a cell run this command created, unless a claim was already taken on it."""
+    if client.get_run(run_id).data.params:
+        return False
+    client.delete_run(run_id)
+    return True
 
 
 def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
@@ -125,7 +154,6 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     experiment_id = get_or_create_experiment(client, EXPERIMENT)
     parent_id = get_or_create_parent_run(client, experiment_id, study_name,
                                          {"kind": "ablation", "profile": cfg.profile})
-    parent_id = settle_parent_run(client, experiment_id, study_name, parent_id)
     log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
                                    "study_hash": cfg.study_hash(), **provenance_params()})
     outcome = StudyOutcome(experiment_id, parent_id, study_name)

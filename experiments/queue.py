@@ -39,7 +39,6 @@ from experiments.tracking import (
     log_params,
     provenance_params,
     set_tags,
-    settle_parent_run,
     sqlite_path,
     tracking_uri,
 )
@@ -167,7 +166,6 @@ def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
     experiment_id = get_or_create_experiment(client, EXPERIMENT)
     parent_id = get_or_create_parent_run(client, experiment_id, study_name,
                                          {"kind": "ablation", "profile": cfg.profile, "queue": describe(queue_url)})
-    parent_id = settle_parent_run(client, experiment_id, study_name, parent_id)
     log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
                                    "study_hash": cfg.study_hash(), **provenance_params()})
     storage = open_storage(queue_url, cfg.sweep, uri)  # an RDB storage (resolve_queue): heartbeats on

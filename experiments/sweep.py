@@ -106,7 +106,6 @@ from experiments.tracking import (
     provenance_params,
     runs_page_url,
     set_tags,
-    settle_parent_run,
     tracking_uri,
 )
 
@@ -293,7 +292,6 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     parent_id = get_or_create_parent_run(client, experiment_id, name, {
         "kind": "sweep", "profile": cfg.profile, "task": cfg.sweep.task, "variant": cfg.sweep.variant,
         "optuna_storage": describe(spec)})
-    parent_id = settle_parent_run(client, experiment_id, name, parent_id)
     log_params(client, parent_id, {**flatten({"sweep": {**dataclasses.asdict(cfg.sweep),
                                                         "storage": describe(spec)}}), **provenance_params()})
     storage = open_storage(spec, cfg.sweep, uri)

@@ -41,6 +41,8 @@ ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES = "ablation", "sweep", "smoothing", 
 STUDY_KINDS = (ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES)  # one MLflow experiment per study kind
 MILESTONE_ITERATION = "milestone.iteration"  # param of a milestones study's run: its checkpoint's iteration
 PACKAGES = ("torch", "numpy", "pybullet", "pytorch-kinematics", "mlflow", "optuna", "scipy", "acrmdn")
+# a param another process inserted between our read and our write (PostgreSQL, SQLite, MLflow's own check)
+_PARAM_CONFLICTS = ("duplicate key", "UNIQUE constraint failed", "Changing param values is not allowed")
 _RETRY_MARKERS = ("database is locked", "database table is locked", "sqlite3.OperationalError", "disk I/O error")
 
 
@@ -131,7 +133,7 @@ def get_or_create_experiment(client: Client, name: str) -> str:
 
 
 def find_parent_run(client: Client, experiment_id: str, study_name: str):
-    """The study's parent run: the earliest, the one concurrent commands settle on (settle_parent_run)."""
+    """The study's parent run: the earliest, the one concurrent commands settle on (get_or_create_parent_run)."""
     runs = client.search_runs(
         [experiment_id],
         filter_string=f"tags.study_name = '{study_name}' and tags.role = 'parent'",
@@ -141,39 +143,59 @@ def find_parent_run(client: Client, experiment_id: str, study_name: str):
     return runs[0] if runs else None
 
 
+def settle_window(uri: str) -> float:
+    """Seconds a command that created a run waits before it looks for an earlier one. MLflow
+    sets a run's start_time on the client before the insert commits, so a run that started
+    earlier may become visible later; one whose insert took longer than this is withdrawn by
+    its creator (get_or_create_parent_run). A local SQLite store commits in milliseconds."""
+    return 0.5 if sqlite_path(uri) is not None else 3.0
+
+
+def wait_for_earlier_runs(start_ms: int, window: float) -> None:
+    """Sleep until `window` seconds after `start_ms`: by then a run started before it is visible."""
+    time.sleep(max(0.0, start_ms / 1000 + window - time.time()))
+
+
 def get_or_create_parent_run(client: Client, experiment_id: str, study_name: str, tags: Mapping[str, str]) -> str:
-    """The study's parent run; re-running a study reuses it (and marks it RUNNING again)."""
+    """The study's parent run, marked RUNNING (a re-run reuses it). Commands of one study started
+    at once (workers on several hosts) may each create one: after the settle window all see the
+    same earliest, settle on it, and each deletes only the duplicate it created itself."""
     from mlflow.exceptions import MlflowException
 
     all_tags = {"study_name": study_name, "role": "parent", **tags}
-    for _ in range(3):
+    window = settle_window(client.uri)
+    for _ in range(5):
+        own = None
         run = find_parent_run(client, experiment_id, study_name)
         if run is None:
-            return client.create_run(experiment_id, run_name=study_name, tags=all_tags).info.run_id
+            began = time.time()
+            own = client.create_run(experiment_id, run_name=study_name, tags=all_tags)
+            if time.time() - began > window and _withdraw_parent_run(client, experiment_id, own.info.run_id):
+                continue  # so slow that others may have settled on a later run meanwhile: theirs it is
+            run = own
+        wait_for_earlier_runs(run.info.start_time, window)
+        first = find_parent_run(client, experiment_id, study_name)
+        if first is None:  # the one we saw was deleted by its creator
+            continue
+        if own is not None and first.info.run_id != own.info.run_id:
+            _withdraw_parent_run(client, experiment_id, own.info.run_id)
         try:
-            client.update_run(run.info.run_id, status="RUNNING")
-        except MlflowException as exc:  # a duplicate another command deleted just after we found it
+            client.update_run(first.info.run_id, status="RUNNING")
+            client.log_batch(first.info.run_id, tags=[RunTag(k, str(v)) for k, v in all_tags.items()])
+        except MlflowException as exc:  # deleted by its creator just after we found it
             if "deleted" not in str(exc):
                 raise
             continue
-        client.log_batch(run.info.run_id, tags=[RunTag(k, str(v)) for k, v in all_tags.items()])
-        return run.info.run_id
+        return first.info.run_id
     raise RuntimeError(f"the parent run of study {study_name!r} kept being deleted by another command")
 
 
-def settle_parent_run(client: Client, experiment_id: str, study_name: str, parent_id: str) -> str:
-    """Commands of one study started at once (workers on several hosts) may each create a
-    parent run: all settle on the earliest (each sees it, since it was created before their
-    own) and delete their own duplicate while it has no children."""
-    runs = client.search_runs([experiment_id], max_results=100,
-                              filter_string=f"tags.study_name = '{study_name}' and tags.role = 'parent'")
-    if len(runs) <= 1:
-        return parent_id
-    first = min(runs, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id
-    if first != parent_id and not client.search_runs(
-            [experiment_id], filter_string=f"tags.`{PARENT_TAG}` = '{parent_id}'", max_results=1):
-        client.delete_run(parent_id)
-    return first
+def _withdraw_parent_run(client: Client, experiment_id: str, parent_id: str) -> bool:
+    """Delete a parent run this command created, unless a cell already hangs under it."""
+    if client.search_runs([experiment_id], filter_string=f"tags.`{PARENT_TAG}` = '{parent_id}'", max_results=1):
+        return False
+    client.delete_run(parent_id)
+    return True
 
 
 def child_runs(client: Client, experiment_id: str, parent_id: str) -> list:
@@ -241,12 +263,20 @@ def provenance_params() -> dict[str, str]:
 def log_params(client: Client, run_id: str, params: Mapping[str, Any]) -> None:
     """Log params once. MLflow params are immutable, so on a resumed/reused run a value that
     changed since (e.g. the git commit) is recorded as a tag `changed.<key>` instead."""
-    existing = client.get_run(run_id).data.params
+    from mlflow.exceptions import MlflowException
+
     values = {k: str(v)[:6000] for k, v in params.items()}
-    new = [Param(k, v) for k, v in values.items() if k not in existing]
+    for attempt in range(3):
+        existing = client.get_run(run_id).data.params
+        new = [Param(k, v) for k, v in values.items() if k not in existing]
+        try:
+            if new:
+                client.log_batch(run_id, params=new)
+            break
+        except MlflowException as exc:  # another command of the study logged them at the same moment: read again
+            if attempt == 2 or not any(m in str(exc) for m in _PARAM_CONFLICTS):
+                raise
     changed = {f"changed.{k}": v for k, v in values.items() if k in existing and existing[k] != v}
-    if new:
-        client.log_batch(run_id, params=new)
     if changed:
         set_tags(client, run_id, changed)
 
