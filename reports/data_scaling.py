@@ -1,8 +1,9 @@
 """Success vs number of demonstrations, across studies that differ only in it (issue 16's data-scaling figure):
 {{ data_scaling("TASK", "STUDY", "STUDY", ...) }} in a RESULTS template. Each study contributes its finished
 runs of training task TASK, at the number of demonstrations they trained on (their `data.n_demos` param, else
-the task's default); the table gives, per evaluated task, variant and number of demonstrations, the statistics
-of every success table (experiments.stats), the figure the mean over seeds with the seed-aware 95 % interval."""
+the task's default; studies of different variants may share a number); the table gives, per evaluated task,
+variant and number of demonstrations, the statistics of every success table (experiments.stats), the figure
+the mean over seeds with the seed-aware 95 % interval."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ N_DEMOS = "params.data.n_demos"
 
 
 class DataScalingError(ValueError):
-    """The named studies cannot make one curve (two at the same number of demonstrations)."""
+    """The named studies cannot make one curve (two with one variant at the same number of demonstrations)."""
 
 
 def demos_of(study: Study, task: str) -> int | None:
@@ -47,10 +48,13 @@ def scaling_cells(studies: list[Study], task: str) -> pd.DataFrame:
         n = demos_of(study, task)
         if n is None:
             continue
-        if n in seen:
-            raise DataScalingError(f"studies {seen[n]!r} and {study.name!r} both trained {task} on {n} demonstrations")
-        seen[n] = study.name
-        frames.append(task_cells(study, task).assign(n_demos=n, study=study.name))
+        cells = task_cells(study, task)
+        for variant in dict.fromkeys(cells["variant"]):  # two studies may share a count if not a variant
+            if (n, variant) in seen:
+                raise DataScalingError(f"studies {seen[n, variant]!r} and {study.name!r} both trained {task} on {n} "
+                                       f"demonstrations (variant {variant})")
+            seen[n, variant] = study.name
+        frames.append(cells.assign(n_demos=n, study=study.name))
     cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     if cells.empty:
         return cells

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from reports import paper
-from reports.levers import setting_labels
+from reports.levers import in_variant_order, rollout_cells
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
 from reports.store import Study, order_variants
 
@@ -48,20 +48,8 @@ def episode_facts(arrays: dict[str, np.ndarray]) -> pd.DataFrame:
 
 
 def switch_cells(studies: list[Study], task: str) -> pd.DataFrame:
-    """One row per (study, variant) with changing-goal rollouts of `task`'s models: its setting, the episodes'
-    facts pooled over its finished seeds (a list of per-episode frames: `facts`) and the seeds counted."""
-    labels = setting_labels(studies, task)
-    rows = []
-    for study in studies:
-        runs = study.ok[study.ok["task"] == task]
-        for variant in study.variants:
-            facts = [f for run_id in runs[runs["variant"] == variant].sort_values("seed")["run_id"]
-                     if (arrays := study.rollouts(run_id, EVAL_TASK)) is not None
-                     and not (f := episode_facts(arrays)).empty]
-            if facts:
-                rows.append({"study": study.name, "variant": variant, "setting": labels[(study.name, variant)],
-                             "seeds": len(facts), "facts": pd.concat(facts, ignore_index=True)})
-    return pd.DataFrame(rows)
+    """One row per (study, variant) with changing-goal rollouts of `task`'s models (reports.levers.rollout_cells)."""
+    return rollout_cells(studies, task, EVAL_TASK, episode_facts)
 
 
 def switch_table(cells: pd.DataFrame) -> pd.DataFrame:
@@ -69,7 +57,7 @@ def switch_table(cells: pd.DataFrame) -> pd.DataFrame:
     if cells.empty:
         return pd.DataFrame()
     rows = []
-    for r in cells.sort_values("variant", key=lambda v: v.map(_variant_order(cells)), kind="stable").itertuples():
+    for r in in_variant_order(cells).itertuples():
         f = r.facts
         failed = f[f["success"] < 1]
         rows.append({
@@ -93,10 +81,6 @@ def _steps(s: pd.Series) -> str:
     return "–" if s.isna().sum() * 2 >= len(s) else f"{s.fillna(np.inf).median():.0f}"
 
 
-def _variant_order(cells: pd.DataFrame) -> dict[str, int]:
-    return {v: i for i, v in enumerate(order_variants(cells["variant"].unique()))}
-
-
 def min_jerk_remaining(steps: int, length: int) -> np.ndarray:
     """Remaining fraction of a minimum-jerk reach of `steps` steps at each of `length` steps from its start."""
     tau = np.clip(np.arange(length) / steps, 0.0, 1.0)
@@ -114,7 +98,7 @@ def switch_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     expert = task_class(task)()
     demo_steps = (expert.min_steps, expert.max_steps)
     studies = list(dict.fromkeys(cells["study"]))
-    variants = list(_variant_order(cells))
+    variants = order_variants(cells["variant"].unique())
     fig, axes = panel_grid(len(studies), 4.2, 3.4)
     for ax, study in zip(axes.flat, studies, strict=False):
         mine = cells[cells["study"] == study]

@@ -9,6 +9,7 @@ with the seed-aware 95 % interval."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from experiments.stats import success_cells, success_table
 from experiments.tracking import MILESTONE_ITERATION
 from reports import paper
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
-from reports.store import Study
+from reports.store import Study, order_variants
 
 NAME, TITLE = "lever", "Success by setting"
 SETTING_PREFIXES = ("data.", "model.", "train.", "eval.")
@@ -111,6 +112,31 @@ def setting_labels(studies: list[Study], task: str) -> dict[tuple[str, str], str
         if twins:
             raise LeverError(f"studies {', '.join(map(repr, twins))} trained {task}/{variant} with the same settings")
     return labels
+
+
+def rollout_cells(studies: list[Study], task: str, eval_task: str,
+                  facts_of: Callable[[dict[str, np.ndarray]], pd.DataFrame]) -> pd.DataFrame:
+    """One row per (study, variant) with `eval_task` rollouts of `task`'s models: its setting (setting_labels),
+    the per-episode facts that `facts_of` reads from each finished seed's rollouts artifact, pooled over the
+    seeds (`facts`; a seed whose facts are empty is not counted), and the seeds counted (`seeds`)."""
+    labels = setting_labels(studies, task)
+    rows = []
+    for study in studies:
+        runs = study.ok[study.ok["task"] == task]
+        for variant in study.variants:
+            facts = [f for run_id in runs[runs["variant"] == variant].sort_values("seed")["run_id"]
+                     if (arrays := study.rollouts(run_id, eval_task)) is not None
+                     and not (f := facts_of(arrays)).empty]
+            if facts:
+                rows.append({"study": study.name, "variant": variant, "setting": labels[(study.name, variant)],
+                             "seeds": len(facts), "facts": pd.concat(facts, ignore_index=True)})
+    return pd.DataFrame(rows)
+
+
+def in_variant_order(cells: pd.DataFrame) -> pd.DataFrame:
+    """`cells` sorted by variant in the paper's order (reports.store.order_variants), stable within one."""
+    rank = {v: i for i, v in enumerate(order_variants(cells["variant"].unique()))}
+    return cells.sort_values("variant", key=lambda v: v.map(rank), kind="stable")
 
 
 def lever_cells(studies: list[Study], task: str) -> pd.DataFrame:

@@ -121,6 +121,7 @@ class Results:
         """The default ablation study if the template uses it, the ablation studies it uses (in order) and the
         sweep studies it uses (all selected ones when the template names none specifically)."""
         abl = [self.need_ablation(p) for p in placeholders if is_ablation_kind(p.kind)]
+        abl = [self.named.get(whole_study(s.name), s) for s in abl]  # a stage NAME@ITERATION: its whole study
         abl += [self.named[whole_study(name)] for p in placeholders if p.kind in MULTI_STUDY for name in p.studies]
         default = self.ablation if any(is_ablation_kind(p.kind) and p.study is None for p in placeholders) else None
         abl = list({s.run_id: s for s in abl}.values())
@@ -139,7 +140,7 @@ class Results:
 
     # ------------------------------------------------------------------- tables
     def summary(self, name: str, study: Study) -> pd.DataFrame:
-        key = (name, study.run_id)
+        key = (name, study.run_id, study.name)  # the stages NAME@ITERATION of a study share its parent run
         if key not in self._cache:
             build = {"success": tables.success_summary, "circle": tables.circle_summary,
                      "train": tables.train_time_summary}[name]

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from reports import paper
-from reports.levers import setting_labels
+from reports.levers import in_variant_order, rollout_cells
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
 from reports.store import Study, order_variants
 
@@ -46,22 +46,11 @@ def episode_facts(arrays: dict[str, np.ndarray], sub_horizon: int, grasp: np.nda
 
 
 def stacking_cells(studies: list[Study], task: str) -> pd.DataFrame:
-    """One row per (study, variant) with stacking rollouts of `task`'s models: its setting, the episodes' facts
-    pooled over its finished seeds (`facts`) and the seeds counted."""
+    """One row per (study, variant) with stacking rollouts of `task`'s models (reports.levers.rollout_cells)."""
     from envs.tasks.stack import SUB_HORIZON
 
-    labels, grasp = setting_labels(studies, task), grasp_point()
-    rows = []
-    for study in studies:
-        runs = study.ok[study.ok["task"] == task]
-        for variant in study.variants:
-            facts = [episode_facts(arrays, SUB_HORIZON, grasp)
-                     for run_id in runs[runs["variant"] == variant].sort_values("seed")["run_id"]
-                     if (arrays := study.rollouts(run_id, EVAL_TASK)) is not None]
-            if facts:
-                rows.append({"study": study.name, "variant": variant, "setting": labels[(study.name, variant)],
-                             "seeds": len(facts), "facts": pd.concat(facts, ignore_index=True)})
-    return pd.DataFrame(rows)
+    grasp = grasp_point()
+    return rollout_cells(studies, task, EVAL_TASK, lambda arrays: episode_facts(arrays, SUB_HORIZON, grasp))
 
 
 def shares(facts: pd.DataFrame) -> tuple[list[float], list[float]]:
@@ -76,8 +65,7 @@ def stacking_table(cells: pd.DataFrame) -> pd.DataFrame:
     if cells.empty:
         return pd.DataFrame()
     rows = []
-    rank = {v: i for i, v in enumerate(order_variants(cells["variant"].unique()))}
-    for r in cells.sort_values("variant", key=lambda v: v.map(rank), kind="stable").itertuples():
+    for r in in_variant_order(cells).itertuples():
         came, tower = shares(r.facts)
         closest = [100 * r.facts[f"closest_{k}"].median() for k in range(1, BLOCKS + 1)]
         rows.append({

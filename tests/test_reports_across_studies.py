@@ -1,7 +1,7 @@
-"""The placeholders over several studies, on two real smoke ablations of reacher's LSTM (6 straight demonstrations;
-4 demonstrations, half of them switching goal): {{ data_scaling(...) }} (reports.data_scaling) as one curve,
-{{ lever(...) }} (reports.levers) telling the two apart by their settings, {{ goal_switch(...) }}
-(reports.goal_switch) from their changing-goal rollouts."""
+"""The placeholders over several studies, on real smoke ablations of reacher's LSTM (6 straight demonstrations;
+4 demonstrations, half of them switching goal) and of its a.c. LSTM (6 straight ones): {{ data_scaling(...) }}
+(reports.data_scaling) as one curve, {{ lever(...) }} (reports.levers) telling the two apart by their
+settings, {{ goal_switch(...) }} (reports.goal_switch) from their changing-goal rollouts."""
 
 from __future__ import annotations
 
@@ -20,9 +20,10 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> Path:
     store = tmp_path_factory.mktemp("scaling")
-    for n, switches in ((6, []), (4, ["--set", "per_task.reacher.data.goal_switches=0.5"])):
-        proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--workers", "1", "--study-name",
-                        f"demos{n}", "--set", f"per_task.reacher.data.n_demos={n}", "--set", "eval.rollouts=2",
+    for name, n, variant, switches in (("demos6", 6, "lstm", []), ("demos6-ac", 6, "ac-lstm", []),
+                                       ("demos4", 4, "lstm", ["--set", "per_task.reacher.data.goal_switches=0.5"])):
+        proc = run_cli(["ablation", "--profile", "smoke", "--variants", variant, "--workers", "1", "--study-name",
+                        name, "--set", f"per_task.reacher.data.n_demos={n}", "--set", "eval.rollouts=2",
                         "--set", "eval.figures=0", *switches], store)
         assert proc.returncode == 0, proc.stderr[-3000:]
     return store
@@ -72,6 +73,22 @@ def test_each_study_sits_at_its_own_number_of_demonstrations(store):
     assert sorted(set(zip(cells["n_demos"], cells["study"], strict=True))) == [(4, "demos4"), (6, "demos6")]
     assert set(cells["eval_task"]) == {"reacher", "reacher-changing-goal"} and set(cells["n"]) == {2}
     assert scaling_cells([selection.pick("demos4", ("ablation",))], "circle").empty  # no runs of that task
+
+
+def test_studies_of_other_variants_share_a_number_of_demonstrations(store):
+    """A variant trained later in a study of its own joins the curve at the same count; one variant twice at
+    one count is an error (test_the_same_study_twice_is_one_line)."""
+    from reports.data_scaling import DataScalingError, scaling_cells
+    from reports.selection import Selection
+    from reports.store import Store
+
+    selection = Selection(Store(f"sqlite:///{store / 'mlflow.db'}"))
+    pick = lambda name: selection.pick(name, ("ablation",))  # noqa: E731
+    cells = scaling_cells([pick("demos6"), pick("demos4"), pick("demos6-ac")], "reacher")
+    assert sorted(set(zip(cells["n_demos"], cells["variant"], cells["study"], strict=True))) == [
+        (4, "lstm", "demos4"), (6, "ac-lstm", "demos6-ac"), (6, "lstm", "demos6")]
+    with pytest.raises(DataScalingError, match="variant lstm"):
+        scaling_cells([pick("demos6"), pick("demos6")], "reacher")
 
 
 @pytest.mark.parametrize(("placeholder", "message"), [

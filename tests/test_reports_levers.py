@@ -99,3 +99,22 @@ def test_a_template_names_a_stage_and_provenance_keeps_the_whole_study():
     for bad, why in (("paper-milestones@ten", "must be a whole number"), ("paper-milestones@1", "no runs at")):
         with pytest.raises(ResultsError, match=why):
             _named_studies(OneStudy(), [Placeholder("lever", ("reacher", bad), 3)])
+
+
+def test_two_stages_of_one_study_get_their_own_success_tables(tmp_path):
+    """NAME@5000 and NAME@10000 share the milestones study's parent run: each table is of its own stage (both
+    once read the first stage's), and what the template used is the whole study (its provenance)."""
+    from reports.results import Results
+    from reports.template import Placeholder
+
+    def stage(it: int, rate: float) -> pd.DataFrame:
+        return _study("m", **{"milestone.iteration": str(it)}).children.assign(**{
+            "metrics.reacher/success_rate": rate, "metrics.reacher/n_rollouts": 4.0, "run_id": [f"{it}-0", f"{it}-1"]})
+
+    stages = pd.concat([stage(5000, 0.25), stage(10000, 0.75)], ignore_index=True)
+    whole = Study("milestones", {"run_id": "m", "tags.study_name": "pm"}, stages, client=None)
+    named = {"pm": whole, **{f"pm@{it}": at_iteration(whole, it) for it in (5000, 10000)}}
+    results = Results(None, [], tmp_path / "RESULTS.md", tmp_path, "command", named)
+    assert [results.summary("success", named[f"pm@{it}"])["mean"].tolist() for it in (5000, 10000)] == [[0.25], [0.75]]
+    used = results.used([Placeholder("success_table", (), 1, study=f"pm@{it}") for it in (5000, 10000)])
+    assert used[1] == [whole]
