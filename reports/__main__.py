@@ -6,8 +6,9 @@ reports/RESULTS.md (+ its small PNGs in reports/figures/) from reports/RESULTS.t
 `nox -s report -- --results` is the one command (see reports/results.py for the placeholders).
 `--results --exports reports/studies` builds it from the study exports in the repository instead of a store.
 
-`python -m reports export --study NAME_OR_RUN_ID [--out reports/studies]`: write a study's compact export
-(reports/export.py); `python -m reports import FOLDER [...]`: read exports into a store (reports/studyimport.py)."""
+`python -m reports export --study NAME_OR_RUN_ID [--out reports/studies] [--with-checkpoints]`: write a study's
+compact export, or a resumable snapshot (reports/export.py); `python -m reports import FOLDER [...]`: read exports
+into a store (reports/studyimport.py)."""
 
 from __future__ import annotations
 
@@ -62,7 +63,10 @@ def parse_export_args(argv: list[str]) -> argparse.Namespace:
                 "params, metrics, tags and the rollouts the reports read) to OUT/<study>/ (see reports/export.py).")
     p.add_argument("--study", required=True, metavar="NAME_OR_RUN_ID", help="study_name or parent run id")
     p.add_argument("--tracking-uri", help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)")
-    p.add_argument("--out", type=Path, default=Path("reports/studies"), help="root of the exports")
+    p.add_argument("--out", type=Path, help="root of the exports (default: reports/studies; snapshots/ with "
+                   "--with-checkpoints)")
+    p.add_argument("--with-checkpoints", action="store_true", help="a resumable snapshot: each unfinished cell's "
+                   "last checkpoint and every kept checkpoint too (megabytes per cell; kept out of git)")
     return p.parse_args(argv)
 
 
@@ -170,12 +174,12 @@ def export_main(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     try:
-        folder, doc, size = export_study(Store(args.tracking_uri), args.study, args.out)
+        folder, doc, size = export_study(Store(args.tracking_uri), args.study, args.out, args.with_checkpoints)
     except (StoreError, ExportError) as exc:
         return _error(exc)
     except OSError as exc:
-        return _error(f"cannot write the export under {args.out}: {exc.strerror or exc}")
-    if doc["runs"][0]["status"] != "FINISHED":
+        return _error(f"cannot write the export under {args.out or 'its folder'}: {exc.strerror or exc}")
+    if doc["runs"][0]["status"] != "FINISHED" and not args.with_checkpoints:
         print(f"reports: warning: the study's parent run is {doc['runs'][0]['status']}: export it again once it "
               "finished", file=sys.stderr)
     n_art = sum(len(r["artifacts"]) for r in doc["runs"])

@@ -13,6 +13,13 @@ An export folder holds:
     artifacts/<run_id>/rollouts/<task>.npz and rollouts/ik_timing.json: the artifacts the reports read; nothing
                 else (no checkpoints, models or figures). Float arrays are stored as float32.
 
+A snapshot (`--with-checkpoints`) is an export that can also be trained on: each unfinished cell's resume
+checkpoint (checkpoint/model.pt: weights, optimiser, RNG state, history) and every cell's kept checkpoints
+(checkpoint_at/<iteration>/model.pt) come along, byte for byte. Imported into a store elsewhere
+(reports.studyimport), the same study command resumes every cell where it stopped and the milestones command
+finds its checkpoints. Snapshots weigh megabytes per cell: they go to SNAPSHOTS (ignored by git), never to the
+committed exports.
+
 The export is deterministic (sorted keys, fixed zip dates, canonical JSON): re-exporting an unchanged study gives
 the same bytes, and a diff shows what changed. It names no path of this machine: tags that hold one
 (mlflow.source.name, ...) and any param or tag whose value contains the store's folder, the working directory,
@@ -34,12 +41,14 @@ import numpy as np
 
 from envs.fileio import atomic_write_bytes
 from experiments.tracking import PARENT_TAG, store_dir
+from experiments.worker import CHECKPOINT_DIR, CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR
 from reports.store import Store, Study
 
 FORMAT = "acrmdn-study-export/1"
 RUNS_FILE = "runs.json"
 ARTIFACTS = "artifacts"
 DEFAULT_EXPORTS = Path("reports/studies")
+SNAPSHOTS = Path("snapshots")  # exports with checkpoints: out of git
 MAX_HISTORY = 500
 HISTORY_NOTE = (f"a metric history longer than {MAX_HISTORY} points keeps every k-th point in (step, timestamp) "
                 f"order, k = ceil(n / {MAX_HISTORY}), and always its last one (MLflow's latest value); "
@@ -103,8 +112,9 @@ def _sort_key(point: list) -> tuple:
 
 # ------------------------------------------------------------------------------------------------ reading
 class _Exporter:
-    def __init__(self, store: Store, study: Study):
+    def __init__(self, store: Store, study: Study, checkpoints: bool = False):
         self.store, self.study, self.client = store, study, store.client
+        self.checkpoints = checkpoints
         self.roots = _machine_roots(store.uri)
         self.dropped: set[str] = set()
 
@@ -140,12 +150,27 @@ class _Exporter:
             out[key] = {"points": pts, **({"thinned_from": n} if n else {})}
         return out
 
-    def artifacts(self, run_id: str, tmp: Path) -> dict[str, bytes]:
-        """rollouts/*.npz (float32) and rollouts/ik_timing.json (canonical JSON) of a run, as exported bytes."""
+    def listed(self, run_id: str, folder: str) -> list[str]:
+        """The files under an artifact folder of the run, any depth."""
         try:
-            listed = [f.path for f in self.client.list_artifacts(run_id, "rollouts") if not f.is_dir]
+            found, todo = [], [folder]
+            while todo:
+                for f in self.client.list_artifacts(run_id, todo.pop()):
+                    (todo if f.is_dir else found).append(f.path)
+            return sorted(found)
         except Exception as exc:  # noqa: BLE001 - an unreachable artifact store
             raise ExportError(f"cannot list the artifacts of run {run_id}: {str(exc).splitlines()[0]}") from None
+
+    def checkpoint_files(self, run, tmp: Path) -> dict[str, bytes]:
+        """A snapshot's checkpoints of a run: every kept one, and the resume checkpoint unless it FINISHED."""
+        paths = self.listed(run.info.run_id, KEPT_CHECKPOINT_DIR)
+        if run.info.status != "FINISHED":
+            paths += [p for p in self.listed(run.info.run_id, CHECKPOINT_DIR) if Path(p).name == CHECKPOINT_NAME]
+        return {p: Path(self.client.download_artifacts(run.info.run_id, p, str(tmp))).read_bytes() for p in paths}
+
+    def artifacts(self, run_id: str, tmp: Path) -> dict[str, bytes]:
+        """rollouts/*.npz (float32) and rollouts/ik_timing.json (canonical JSON) of a run, as exported bytes."""
+        listed = self.listed(run_id, "rollouts")
         out = {}
         for path in sorted(p for p in listed if p.endswith(".npz") or p in ROLLOUT_FILES):
             local = Path(self.client.download_artifacts(run_id, path, str(tmp)))
@@ -165,6 +190,8 @@ class _Exporter:
             for r in self.runs():
                 rid = r.info.run_id
                 arts = self.artifacts(rid, Path(tmp))
+                if self.checkpoints:
+                    arts.update(self.checkpoint_files(r, Path(tmp)))
                 files.update({f"{ARTIFACTS}/{rid}/{p}": b for p, b in arts.items()})
                 runs.append({
                     "run_id": rid, "run_name": r.info.run_name, "status": r.info.status,
@@ -184,11 +211,17 @@ def _machine_roots(uri: str) -> list[str]:
     return sorted(str(r) for r in roots if len(r.parts) > 1)
 
 
-def export_study(store: Store, ident: str, out_root: Path = DEFAULT_EXPORTS) -> tuple[Path, dict, int]:
-    """Write the export of study `ident` (study_name or parent run id) to out_root/<slug>/, replacing an earlier
-    export there: the folder, its runs.json and its byte size."""
+def export_study(store: Store, ident: str, out_root: Path | None = None, checkpoints: bool = False
+                 ) -> tuple[Path, dict, int]:
+    """Write the export of study `ident` (study_name or parent run id) to out_root/<slug>/ (default: DEFAULT_EXPORTS,
+    or SNAPSHOTS with `checkpoints`), replacing an earlier export there: the folder, its runs.json and its byte
+    size."""
+    out_root = out_root or (SNAPSHOTS if checkpoints else DEFAULT_EXPORTS)
+    if checkpoints and out_root.resolve() == DEFAULT_EXPORTS.resolve():
+        raise ExportError(f"a snapshot holds checkpoints (megabytes per cell) and stays out of {DEFAULT_EXPORTS}, "
+                          f"which git keeps; choose another --out (default {SNAPSHOTS})")
     study = store.studies(None, ident)[0]
-    doc, files = _Exporter(store, study).export()
+    doc, files = _Exporter(store, study, checkpoints).export()
     text = dumps(doc) + "\n"
     leaked = [r for r in _machine_roots(store.uri) if r in text]
     if leaked:  # a path in a metric key or a run name: refuse rather than commit it

@@ -9,6 +9,9 @@ and timestamps; into a SQLite store in bulk: reports.bulk_metrics), artifacts, s
 parent link points to the new parent run, and every run keeps its original id in tag `export.run_id` (reports
 show that id). A run that fails midway deletes the runs it created.
 
+A cell's claim (experiments/claims.py: its `claim.<n>` params and beat tag) is left behind: it names a process of
+the exporting store, and a snapshot's unfinished cells (reports.export) are to be resumed here.
+
 Importing twice does not duplicate: a study whose parent carries the same export digest (the sha256 of runs.json)
 is skipped; a different study of the same study_name already in the store is an error (exit 2): import it into
 another store.
@@ -21,6 +24,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from experiments.claims import BEAT_TAG, CLAIM
 from experiments.tracking import PARENT_TAG, Client, get_or_create_experiment, sqlite_path
 from reports import bulk_metrics
 from reports.export import FORMAT, RUN_NAME_TAG, RUNS_FILE, ExportError
@@ -120,7 +124,8 @@ def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[
             bulk_db: Path | None) -> str:
     from mlflow.entities import Metric, Param
 
-    tags = {**run["tags"], SOURCE_RUN_TAG: run["run_id"]}
+    # a cell's claim names a process of the exporting store: here the run is free to be resumed (a snapshot)
+    tags = {k: v for k, v in run["tags"].items() if k != BEAT_TAG} | {SOURCE_RUN_TAG: run["run_id"]}
     if run["parent_run_id"] is None:
         tags[DIGEST_TAG] = digest
     else:
@@ -128,7 +133,7 @@ def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[
     tags.pop(RUN_NAME_TAG, None)
     rid = client.create_run(exp_id, start_time=run["start_time"], tags=tags, run_name=run["run_name"]).info.run_id
     new_ids[run["run_id"]] = rid
-    params = [Param(k, str(v)) for k, v in sorted(run["params"].items())]
+    params = [Param(k, str(v)) for k, v in sorted(run["params"].items()) if not k.startswith(CLAIM)]
     for i in range(0, len(params), 100):
         client.log_batch(rid, params=params[i:i + 100])
     points = _points(run)
