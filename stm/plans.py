@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.robot import NEUTRAL_Q
-from envs.tasks.base import get_task
+from envs.tasks.registry import get_task
 
 # Four reacher goals in the base frame (m), spread over the reacher task's goal box
 # (envs.tasks.reacher.GOAL_BOX): left/right, near/far, low/high.

@@ -19,7 +19,7 @@ from stm.registry import VARIANTS
 pytestmark = pytest.mark.slow
 
 TOY_MODULE = textwrap.dedent('''
-    from envs.tasks.base import register
+    from envs.tasks.registry import register
     from envs.tasks.reacher import Reacher
     from stm.registry import VARIANTS, Variant
 

@@ -173,7 +173,7 @@ def test_overrides_change_the_study_name():
 
 def _fake_ablation_cell(client: MlflowClient, work: Path) -> str:
     """A FINISHED reacher/ac-lstm-mdn ablation run holding a (small, untrained) STM checkpoint."""
-    from envs.tasks.base import get_task
+    from envs.tasks.registry import get_task
     from stm.checkpoint import FORMAT_VERSION, save_checkpoint
     from stm.config import ModelConfig, TrainConfig
     from stm.model import STM, layout_to_dict

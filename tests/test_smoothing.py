@@ -90,7 +90,7 @@ def test_smoothing_study_writes_figure_and_metrics(tmp_path):
 
 
 def test_stm_plans_start_at_q_start():
-    from envs.tasks.base import get_task
+    from envs.tasks.registry import get_task
     from stm.config import ModelConfig
     from stm.model import STM
     from stm.plans import stm_plans

@@ -47,11 +47,12 @@ def test_every_module_of_the_folder_is_discovered_without_an_import_line():
     assert {f"envs.tasks.{m}" for m in modules} <= set(sys.modules)
     assert {"envs.tasks.circle", "envs.tasks.reacher", "envs.tasks.pickplace", "envs.tasks.stack",
             "envs.tasks.pickplace_changing_goal"} <= {cls.__module__ for cls in TASKS.values()}
-    # the package does not name its task modules; base and registry do not import the package
+    # the package does not name its task modules; base and registry do not import the package, nor base the
+    # registry (the task modules import both: no cycle, not even one that only a type checker follows)
     init = _imports(TASKS_DIR / "__init__.py")
     assert not any(m.startswith(("envs.tasks.reacher", "envs.tasks.circle", "envs.tasks.pick")) for m in init)
     assert "envs.tasks" not in _imports(TASKS_DIR / "base.py") | _imports(TASKS_DIR / "registry.py")
-    assert not any(m.startswith("envs.tasks.") and m != "envs.tasks.registry" for m in _imports(TASKS_DIR / "base.py"))
+    assert not any(m.startswith("envs.tasks.") for m in _imports(TASKS_DIR / "base.py"))
 
 
 @pytest.mark.slow

@@ -18,9 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.tasks.registry import TASKS, UnknownTaskError, get_task, register
-
-__all__ = ["TASKS", "Demos", "Episode", "StateLayout", "Task", "UnknownTaskError", "get_task", "register"]
+__all__ = ["Demos", "Episode", "StateLayout", "Task"]
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,9 @@ import numpy as np
 from tqdm import tqdm
 
 from envs.robot import LIMITS, NEUTRAL_Q
-from envs.tasks.base import Demos, Episode, StateLayout, Task, register
+from envs.tasks.base import Demos, Episode, StateLayout, Task
 from envs.tasks.expert import check_trajectory, min_jerk, physics_scene, solve_tool_down_path, velocity_ratio
+from envs.tasks.registry import register
 
 log = logging.getLogger(__name__)
 

@@ -49,7 +49,7 @@ from envs.ik import solve_ik
 from envs.kinematics import default_kinematics
 from envs.robot import LIMITS, NEUTRAL_Q
 from envs.sim import GRIPPER_FORCE, TABLE_TOP_Z
-from envs.tasks.base import Demos, Episode, StateLayout, Task, register
+from envs.tasks.base import Demos, Episode, StateLayout, Task
 from envs.tasks.expert import check_trajectory
 from envs.tasks.pickplace_expert import (  # noqa: F401  (GRASP_ROT, pad_rows, ...: the pick-place API)
     FIXED_STEPS,
@@ -66,6 +66,7 @@ from envs.tasks.pickplace_expert import (  # noqa: F401  (GRASP_ROT, pad_rows, .
     solve_plans,
     tip_poses,
 )
+from envs.tasks.registry import register
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ import logging
 
 import numpy as np
 
-from envs.tasks.base import Episode, register
+from envs.tasks.base import Episode
 from envs.tasks.pickplace import (
     PickPlace,
     check_grip_trajectory,
@@ -25,6 +25,7 @@ from envs.tasks.pickplace import (
     solve_plans,
     tip_poses,
 )
+from envs.tasks.registry import register
 
 log = logging.getLogger(__name__)
 

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from envs.kinematics import tip_position_np
 from envs.robot import LIMITS, NEUTRAL_Q
-from envs.tasks.base import Demos, Episode, StateLayout, Task, register
+from envs.tasks.base import Demos, Episode, StateLayout, Task
 from envs.tasks.expert import (
     check_trajectory,
     line_paths,
@@ -44,6 +44,7 @@ from envs.tasks.expert import (
     tool_down_at,
     velocity_ratio,
 )
+from envs.tasks.registry import register
 
 log = logging.getLogger(__name__)
 

@@ -41,9 +41,10 @@ from envs.kinematics import tip_position_np
 from envs.robot import LIMITS, NEUTRAL_Q
 from envs.sim import TABLE_TOP_Z, Scene
 from envs.tasks._bimodal import BimodalReacher
-from envs.tasks.base import Demos, Episode, register
+from envs.tasks.base import Demos, Episode
 from envs.tasks.expert import check_trajectory, min_jerk, tool_down_at
 from envs.tasks.reacher import SUCCESS_RADIUS
+from envs.tasks.registry import register
 
 log = logging.getLogger(__name__)
 

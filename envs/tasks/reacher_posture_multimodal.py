@@ -38,9 +38,10 @@ from envs.ik import DOWN
 from envs.kinematics import default_kinematics, tip_position_np
 from envs.robot import LIMITS, NEUTRAL_Q
 from envs.tasks._bimodal import BimodalReacher
-from envs.tasks.base import Demos, Episode, register
+from envs.tasks.base import Demos, Episode
 from envs.tasks.expert import check_trajectory, line_paths, min_jerk, physics_scene, velocity_ratio
 from envs.tasks.reacher import SUCCESS_RADIUS
+from envs.tasks.registry import register
 
 log = logging.getLogger(__name__)
 

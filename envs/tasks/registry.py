@@ -2,8 +2,8 @@
 (`discover`), and each class decorated with `@register` there is a task.
 
 Adding a task is one new module in envs/tasks/ (plus its tests): no import line
-anywhere else. This module imports no task module by name, and base.py imports it
-(not the reverse), so there is no import cycle.
+anywhere else. This module imports no task module by name, and base.py (the Task class)
+imports nothing of it: the task modules import both, so there is no import cycle.
 """
 
 from __future__ import annotations

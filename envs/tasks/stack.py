@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.blocks import PICK_XY, level_z, rests_at
-from envs.tasks.base import Episode, register
+from envs.tasks.base import Episode
 from envs.tasks.pickplace import (
     LEVELS,
     MAX_STEPS,
@@ -30,6 +30,7 @@ from envs.tasks.pickplace import (
     pad_rows,
     sample_goal_xy,
 )
+from envs.tasks.registry import register
 
 SUB_HORIZON = MAX_STEPS  # steps per stacking sub-episode
 
