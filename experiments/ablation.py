@@ -37,6 +37,7 @@ from experiments.tracking import (
     get_or_create_parent_run,
     log_params,
     provenance_params,
+    report_index,
     runs_page_url,
     set_tags,
     settle_window,
@@ -299,8 +300,8 @@ def study_note(outcome: StudyOutcome, client: Client, kind: str) -> str:
              success_table(client, outcome.experiment_id, outcome.parent_run_id), ""]
     if command_line():
         lines += ["Command:", "", f"    {command_line()}", ""]
-    lines.append(f"Report: `python -m reports --study {outcome.study_name}` writes "
-                 f"`reports/out/{outcome.study_name}/index.html`.")
+    name = outcome.study_name
+    lines.append(f"Report: `python -m reports --study {name}` writes `{report_index(name)}`.")
     return "\n".join(lines)
 
 
@@ -313,5 +314,5 @@ def summary_text(outcome: StudyOutcome, client: Client) -> str:
         lines.append("FAILED cells:")
         lines += [f"  {r.key} (run {r.run_id}): {r.error}" for r in outcome.failures]
     lines.append(f"runs: {runs_page_url(outcome.experiment_id)}  (start the UI with `nox -s ui`)")
-    lines.append(f"report: `nox -s report` writes reports/out/{outcome.study_name}/index.html")
+    lines.append(f"report: `nox -s report` writes {report_index(outcome.study_name)}")
     return "\n".join(lines)

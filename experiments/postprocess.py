@@ -308,7 +308,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     from experiments.stores import StoreUnavailable, wait_for_stores
-    from experiments.tracking import tracking_uri
+    from experiments.tracking import report_index, tracking_uri
 
     try:  # the ablation's probe: a locked store or a server that is down is one line, exit 3
         wait_for_stores(tracking_uri())
@@ -328,6 +328,6 @@ def main(args: argparse.Namespace) -> int:
         return 1
     lines = [f"{cfg.kind} study {name!r} (run {run_id}):"]
     lines += [f"  {k} = {metrics[k]:.6g}" for k in SUMMARY_KEYS[cfg.kind] if k in metrics]
-    lines.append(f"report: `python -m reports --experiment {cfg.kind}` writes reports/out/{name}/index.html")
+    lines.append(f"report: `python -m reports --experiment {cfg.kind}` writes {report_index(name)}")
     print("\n".join(lines))
     return 0

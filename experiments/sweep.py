@@ -104,6 +104,7 @@ from experiments.tracking import (
     log_metrics,
     log_params,
     provenance_params,
+    report_index,
     runs_page_url,
     set_tags,
     tracking_uri,
@@ -259,8 +260,7 @@ class SweepOutcome:
             lines += [f"Best value **{self.best_value:.5g}** with `{self.best_params}`.", ""]
         if command_line():
             lines += ["Command:", "", f"    {command_line()}", ""]
-        lines.append(f"Report: `python -m reports --study {self.study_name}` writes "
-                     f"`reports/out/{self.study_name}/index.html`.")
+        lines.append(f"Report: `python -m reports --study {self.study_name}` writes `{report_index(self.study_name)}`.")
         return "\n".join(lines)
 
 

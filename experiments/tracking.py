@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import re
 import subprocess
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -141,6 +142,16 @@ def find_parent_run(client: Client, experiment_id: str, study_name: str):
         max_results=1,
     )
     return runs[0] if runs else None
+
+
+def file_safe(name: str) -> str:
+    """`name` as (part of) a file or folder name."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def report_index(study_name: str) -> str:
+    """Where `python -m reports` writes a study's report page (in the working directory)."""
+    return f"reports/out/{file_safe(study_name)}/index.html"
 
 
 def settle_window(uri: str) -> float:

@@ -43,7 +43,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from experiments.tracking import DEFAULT_TRACKING_URI, FAILED_STATUSES, PARENT_TAG, sqlite_path, tracking_uri
+from experiments.tracking import (  # noqa: F401  (file_safe: the reports' name for output files)
+    DEFAULT_TRACKING_URI,
+    FAILED_STATUSES,
+    PARENT_TAG,
+    file_safe,
+    sqlite_path,
+    tracking_uri,
+)
 
 log = logging.getLogger(__name__)
 
@@ -56,11 +63,6 @@ CIRCLE_METRIC = re.compile(r"^metrics\.circle/r(?P<r>\d+(?:\.\d+)?)/(?P<name>rad
 
 class StoreError(Exception):
     """A problem with the store or the selection, reported as one line (exit code 2)."""
-
-
-def file_safe(name: str) -> str:
-    """`name` as (part of) a file or folder name."""
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
 
 
 @dataclass

@@ -445,3 +445,18 @@ def test_failed_study_beside_a_good_one_is_skipped_with_one_line(tmp_path, capsy
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("reports:")]
     assert err == ["reports: skipped: ablation study 'broken' has no finished run (2 FAILED)"]
     assert (out / "good-sweep" / "index.html").exists() and not (out / "broken").exists()
+
+
+@pytest.mark.parametrize("name", ["../x", "a b/c", "paper-pickplace-30k"])
+def test_the_report_path_a_study_prints_is_where_its_report_goes(name):
+    """The ablation, sweep and post-processing summaries print experiments.tracking.report_index; the report
+    builds in DEFAULT_OUT/<Study.slug>/ (a name that is no file name is made one, the same way in both)."""
+    import pandas as pd
+
+    from experiments.tracking import report_index
+    from reports.__main__ import DEFAULT_OUT
+    from reports.store import Study
+
+    study = Study("ablation", {"run_id": "r", "tags.study_name": name}, pd.DataFrame(), client=None)
+    assert report_index(name) == f"{DEFAULT_OUT.as_posix()}/{study.slug}/index.html"
+    assert ".." not in Path(report_index(name)).parts
