@@ -1,8 +1,10 @@
 """Worker processes of a study or sweep: spawned (fresh interpreters: no forked torch, pybullet
 or SQLite state), and stopped with their main process.
 
-- Parent death: each worker watches its main process; when it dies (kill -9, OOM killer) the
-  worker exits within a second instead of training on alone. Its run stays RUNNING with its
+- Parent death: on Linux the kernel kills each worker the moment its main process dies (kill -9,
+  OOM killer; PR_SET_PDEATHSIG), however loaded the machine; elsewhere, and as a fallback, each
+  worker watches its main process and exits within a second or so of its death instead of
+  training on alone. Its run stays RUNNING with its
   last checkpoint artifact, so a re-run resumes it (and claims it at once: experiments/claims.py
   sees that its holder is gone).
 - Stop (Ctrl-C in the main process): `stop` is set; a busy worker is interrupted (a training
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import _thread
 import contextlib
+import ctypes
 import multiprocessing as mp
 import os
 import signal
@@ -33,6 +36,7 @@ POLL = 0.5
 _busy = threading.Event()
 _stopping = threading.Event()  # this worker has been interrupted once and is on its way out
 WORKERS_ENV = "ACRMDN_WORKERS"
+PR_SET_PDEATHSIG, PR_GET_PDEATHSIG = 1, 2  # linux/prctl.h
 
 
 def default_workers() -> int:
@@ -69,7 +73,24 @@ def _watch(parent: int, stop) -> None:
         time.sleep(POLL)
 
 
+def die_with_parent() -> int:
+    """Ask the kernel to SIGKILL this process when its parent dies (Linux; a no-op elsewhere): a polling
+    thread may wake seconds late on a loaded machine. The signal it will get, or 0 where unsupported."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL) != 0:
+            return 0
+        got = ctypes.c_int(0)
+        libc.prctl(PR_GET_PDEATHSIG, ctypes.byref(got))
+        return got.value
+    except (OSError, AttributeError):  # no libc prctl (not Linux)
+        return 0
+
+
 def _init(parent: int, stop) -> None:
+    die_with_parent()
+    if os.getppid() != parent:  # the main process died before the kernel was told
+        os._exit(1)
     signal.signal(signal.SIGINT, _on_sigint)
     threading.Thread(target=_watch, args=(parent, stop), name="parent-watch", daemon=True).start()
 

@@ -236,6 +236,25 @@ def test_workers_stop_when_the_main_process_is_killed(tmp_path):
                      for r in _cells(client)}  # nothing writes to the store any more
 
 
+def _death_signal() -> int:
+    import ctypes
+
+    from experiments.procs import PR_GET_PDEATHSIG
+
+    got = ctypes.c_int(0)
+    ctypes.CDLL(None).prctl(PR_GET_PDEATHSIG, ctypes.byref(got))
+    return got.value
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_the_kernel_kills_a_worker_when_its_main_process_dies():
+    """Not left to the watch thread's poll, which a busy or starved worker may run seconds late."""
+    from experiments.procs import worker_pool
+
+    with worker_pool(1) as pool:
+        assert pool.submit(_death_signal).result(timeout=120) == signal.SIGKILL
+
+
 _INTERRUPTED_WORKER = '''
 import sys
 import time
