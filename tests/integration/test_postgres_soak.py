@@ -1,8 +1,11 @@
 """Soak on PostgreSQL: four `ablation --worker` commands (as on four hosts) share one cell queue
-(Optuna RDB storage) and one MLflow tracking server, both on PostgreSQL; every minute one
-worker that is training a cell is killed with SIGKILL and a fresh one takes its place. At the
+(Optuna RDB storage) and one MLflow tracking server, both on PostgreSQL. The first worker starts
+alone and holds at its first checkpoint (the fault hook, experiments/worker.py), the three others
+join, and the first is killed with SIGKILL where it holds: so at least one worker is always
+caught mid-cell, however fast the cells train. After that, every minute one worker caught
+training a cell is killed (if any still is), and a fresh one takes each victim's place. At the
 end every cell is FINISHED exactly once (one run per cell, its steps logged once), no run is
-left RUNNING and nothing is left in the queue. About four minutes."""
+left RUNNING and nothing is left in the queue. Two to four minutes."""
 
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cli_helpers import HOLD_ENV, SIGNAL_FILE_ENV, wait_for_signals
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.integration
@@ -43,10 +47,17 @@ def test_four_workers_one_killed_every_minute(postgres, mlflow_server, tmp_path)
             "--set", "eval.figures=0", "--set", "eval.rollouts=2", "--set", "sweep.heartbeat=1",
             "--set", "sweep.grace_period=5", "--set", "sweep.max_retry=5"]
     client = MlflowClient(mlflow_server.url)
-    procs = [_worker(args, tmp_path, env, tmp_path / f"w{i}.log") for i in range(WORKERS)]
+    signals = tmp_path / "held.signals"
+    procs = [_worker(args, tmp_path, {**env, SIGNAL_FILE_ENV: str(signals), HOLD_ENV: "1"}, tmp_path / "w0.log")]
     killed: list[str] = []
     victims_pids: set[int] = set()
     try:
+        held = wait_for_signals(signals, 1, procs[0], log=tmp_path / "w0.log")  # the whole pack signals at once
+        procs += [_worker(args, tmp_path, env, tmp_path / f"w{i}.log") for i in range(1, WORKERS)]
+        os.killpg(procs[0].pid, signal.SIGKILL)
+        killed.append(held[0][0])
+        victims_pids.add(procs[0].pid)
+        procs.append(_worker(args, tmp_path, env, tmp_path / f"w{len(procs)}.log"))  # a fresh host joins
         deadline = time.monotonic() + 600
         next_kill = time.monotonic() + KILL_EVERY
         while time.monotonic() < deadline and any(p.poll() is None for p in procs):
