@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -49,7 +47,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     r.add_argument("--results-out", type=Path, default=Path("reports/RESULTS.md"))
     r.add_argument("--figures-dir", type=Path, default=Path("reports/figures"))
     r.add_argument("--exports", type=Path, metavar="DIR", help="build from the study exports in DIR (e.g. "
-                   "reports/studies), imported into a temporary store, instead of --tracking-uri's store")
+                   "reports/studies), read directly, instead of --tracking-uri's store")
     args = p.parse_args(argv)
     if not args.results and (args.ablation or args.sweep or args.exports):
         p.error("--ablation, --sweep and --exports select the studies of --results; add --results")
@@ -133,37 +131,22 @@ def _error(exc: Exception | str) -> int:
     return 2
 
 
-def _memory_scratch(min_free: int = 1 << 30) -> str | None:
-    """/dev/shm when it is a writable tmpfs with room, else None (the default temporary folder): the store
-    that --exports builds is thrown away after rendering, so its thousands of SQLite commits need not wait
-    on the disk (the repository's exports, imported beside a running test suite: 27 s there, 36 s in /tmp)."""
-    shm = "/dev/shm"
-    try:
-        return shm if os.access(shm, os.W_OK) and shutil.disk_usage(shm).free >= min_free else None
-    except OSError:
-        return None
-
-
 def results_main(args: argparse.Namespace) -> int:
-    import tempfile
-
-    from reports.export import ExportError
     from reports.results import ResultsError, write_results
     from reports.store import Store, StoreError
-    from reports.studyimport import import_exports
 
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="reports-exports-", dir=_memory_scratch()) as tmp:
-        try:
-            uri = args.tracking_uri
-            if args.exports:
-                _quiet_mlflow()
-                uri = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
-                import_exports([args.exports], uri)
-            out = write_results(Store(uri), args.template, args.results_out, args.figures_dir, args.ablation,
-                                args.sweep, exports=args.exports)
-        except (StoreError, ResultsError, ExportError) as exc:
-            return _error(exc)
+    try:
+        if args.exports:
+            from reports.export_store import ExportStore
+
+            store = ExportStore(args.exports)
+        else:
+            store = Store(args.tracking_uri)
+        out = write_results(store, args.template, args.results_out, args.figures_dir, args.ablation, args.sweep,
+                            exports=args.exports)
+    except (StoreError, ResultsError) as exc:
+        return _error(exc)
     print(f"results: {out} (figures in {args.figures_dir}) [{time.perf_counter() - start:.1f} s]")
     return 0
 

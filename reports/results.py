@@ -11,8 +11,8 @@ Regenerate with ONE command (from the repository root, over the store that holds
         [--figures-dir reports/figures] [--tracking-uri URI | --exports DIR]
 
 Defaults: the latest ablation study of the store and every sweep study in it (the latest one per task).
-With --exports, the store is a temporary one holding every export of DIR (reports.export, reports.studyimport):
-a session without the original store regenerates the same tables. The command written into RESULTS.md
+With --exports, the studies are read from the exports of DIR themselves (reports.export_store; no MLflow store in
+between): a session without the original store regenerates the same tables. The command written into RESULTS.md
 ({{ command }}) pins the studies that were used, so it regenerates the same file later even when newer studies
 have been added to the store; it names the store relative to the working directory (a SQLite file, or the
 exports folder) or by $MLFLOW_TRACKING_URI (a server), never by a path of this machine.

@@ -313,25 +313,27 @@ class Store:
     def studies(self, experiment: str | None = None, study: str | None = None) -> list[Study]:
         """The selected studies: `study` (a parent run id or study_name), else the latest parent of
         `experiment`, else the latest parent of each experiment."""
-        parents = self.parents(experiment)
-        if parents.empty:
-            where = f"experiment {experiment!r}" if experiment else "the store"
-            raise StoreError(f"no studies in {where} at {self.uri}")
-        if study is not None:
-            hit = parents[parents["run_id"] == study]
-            if hit.empty and "tags.study_name" in parents.columns:
-                hit = parents[parents["tags.study_name"] == study].head(1)
-            if hit.empty:
-                raise StoreError(f"unknown study {study!r} (not a parent run id or study_name) in {self.uri}")
-            chosen = hit
-        else:
-            chosen = parents.groupby("experiment", sort=False).head(1)
-        return [self.load(row) for row in chosen.to_dict("records")]
+        return [self.load(row) for row in pick_study(self.parents(experiment), experiment, study, self.uri)]
 
     def load(self, parent: dict[str, Any]) -> Study:
         children = self._runs([parent["experiment_id"]], f"tags.`{PARENT_TAG}` = '{parent['run_id']}'")
-        return Study(experiment=parent.get("experiment", ""), parent=_clean(parent),
-                     children=_tidy_children(children), client=self.client)
+        return Study(experiment=parent.get("experiment", ""), parent=clean_row(parent),
+                     children=tidy_children(children), client=self.client)
+
+
+def pick_study(parents: pd.DataFrame, experiment: str | None, study: str | None, where: str) -> list[dict]:
+    """The parent rows a store's `studies` selects (see Store.studies); `where` names the store in errors."""
+    if parents.empty:
+        scope = f"experiment {experiment!r}" if experiment else "the store"
+        raise StoreError(f"no studies in {scope} at {where}")
+    if study is None:
+        return parents.groupby("experiment", sort=False).head(1).to_dict("records")
+    hit = parents[parents["run_id"] == study]
+    if hit.empty and "tags.study_name" in parents.columns:
+        hit = parents[parents["tags.study_name"] == study].head(1)
+    if hit.empty:
+        raise StoreError(f"unknown study {study!r} (not a parent run id or study_name) in {where}")
+    return hit.to_dict("records")
 
 
 def _check_sqlite_store(path: Path, uri: str) -> None:
@@ -368,11 +370,11 @@ def _runs_frame(runs) -> pd.DataFrame:
     return df
 
 
-def _clean(row: dict[str, Any]) -> dict[str, Any]:
+def clean_row(row: dict[str, Any]) -> dict[str, Any]:
     return {k: (None if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()}
 
 
-def _tidy_children(df: pd.DataFrame) -> pd.DataFrame:
+def tidy_children(df: pd.DataFrame) -> pd.DataFrame:
     """Identity columns (task, variant, seed, profile, config_hash, trial, trial_state) from the tags; metric
     and param columns kept under MLflow's names; `failed` marks FAILED/KILLED cells."""
     if df.empty:

@@ -5,7 +5,7 @@
 The export is validated whole first (its runs.json, and every artifact against its sha256): a corrupt or partial
 export is one line naming what is wrong, and nothing is written. Then the runs are created in the experiment of
 the study's kind (created if missing): the original start times, run names, params, tags, metric histories (steps
-and timestamps; into a SQLite store in bulk: reports.bulk_metrics), artifacts, status and end time; each child's
+and timestamps), artifacts, status and end time; each child's
 parent link points to the new parent run, and every run keeps its original id in tag `export.run_id` (reports
 show that id). A run that fails midway deletes the runs it created.
 
@@ -26,7 +26,6 @@ from typing import Any
 
 from experiments.claims import BEAT_TAG, CLAIM
 from experiments.tracking import PARENT_TAG, Client, get_or_create_experiment, sqlite_path
-from reports import bulk_metrics
 from reports.export import FORMAT, RUN_NAME_TAG, RUNS_FILE, ExportError
 from reports.store import SOURCE_RUN_TAG, Store
 
@@ -120,8 +119,7 @@ def _points(run: dict) -> list[tuple[str, float, int, int]]:
     return out
 
 
-def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[str, str], digest: str,
-            bulk_db: Path | None) -> str:
+def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[str, str], digest: str) -> str:
     from mlflow.entities import Metric, Param
 
     # a cell's claim names a process of the exporting store: here the run is free to be resumed (a snapshot)
@@ -136,13 +134,9 @@ def _create(client: Client, exp_id: str, run: dict, folder: Path, new_ids: dict[
     params = [Param(k, str(v)) for k, v in sorted(run["params"].items()) if not k.startswith(CLAIM)]
     for i in range(0, len(params), 100):
         client.log_batch(rid, params=params[i:i + 100])
-    points = _points(run)
-    if bulk_db is not None:
-        bulk_metrics.insert_new_run_metrics(bulk_db, rid, points)
-    else:
-        metrics = [Metric(*point) for point in points]
-        for i in range(0, len(metrics), BATCH):
-            client.log_batch(rid, metrics=metrics[i:i + BATCH])
+    metrics = [Metric(*point) for point in _points(run)]
+    for i in range(0, len(metrics), BATCH):
+        client.log_batch(rid, metrics=metrics[i:i + BATCH])
     for path in sorted(run["artifacts"]):
         parent = str(Path(path).parent)
         client.log_artifact(rid, str(_artifact(folder, run, path)), None if parent == "." else parent)
@@ -166,12 +160,10 @@ def import_study(folder: Path, uri: str, doc: dict, digest: str) -> None:
     """Import one validated export (plan) into the store at `uri` (created if missing)."""
     client = Client(uri)
     exp_id = get_or_create_experiment(client, doc["experiment"])
-    db = sqlite_path(uri)
-    bulk_db = db if db is not None and bulk_metrics.supported(db) else None
     new_ids: dict[str, str] = {}
     try:
         for run in doc["runs"]:
-            _create(client, exp_id, run, folder, new_ids, digest, bulk_db)
+            _create(client, exp_id, run, folder, new_ids, digest)
     except Exception as exc:
         for rid in new_ids.values():  # nothing half-imported: the runs created so far go
             client.delete_run(rid)
