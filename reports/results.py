@@ -21,7 +21,7 @@ Placeholders of the template:
     {{ provenance }}         per study used: name, kind, profile, git commit, machine/software, seeds,
                              rollouts per seed, pooled rollouts per cell, study wall time, dates
     {{ command }}            the exact regeneration command (a fenced code block)
-    {{ success_table }}      success rates (per seed, Wilson and seed-aware intervals) beside the paper's Table I
+    {{ success_table }}      success rates (per seed, seed-level and Wilson intervals) beside the paper's Table I
     {{ circle_table }}       circle drawing radial errors beside the paper's
     {{ train_time_table }}   training wall time per variant and task
     {{ sweep_table("TASK") }}  the sweep study of TASK: trial counts, best trial (params, objective), top 5
