@@ -200,9 +200,12 @@ def interval(low: float, high: float) -> str:
     return "–" if math.isnan(low) else f"{100 * low:.0f}–{100 * high:.0f}%"
 
 
-def points(x: float, signed: bool = True) -> str:
-    """A difference of rates in percentage points, e.g. '+12'."""
-    return "–" if math.isnan(x) else f"{100 * x:+.0f}" if signed else f"{100 * x:.0f}"
+def points(x: float) -> str:
+    """A difference of rates in percentage points, e.g. '+12' ('0', not '-0', for what rounds to zero)."""
+    if math.isnan(x):
+        return "–"
+    whole = round(100 * x)
+    return f"{whole:+d}" if whole else "0"
 
 
 def p_value(p: float) -> str:
