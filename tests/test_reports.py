@@ -476,3 +476,19 @@ def test_failed_study_beside_a_good_one_is_skipped_with_one_line(tmp_path, capsy
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("reports:")]
     assert err == ["reports: skipped: ablation study 'broken' has no finished run (2 FAILED)"]
     assert (out / "good-sweep" / "index.html").exists() and not (out / "broken").exists()
+
+
+def test_a_packs_training_time_is_reported_once_not_as_a_spread_over_seeds():
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from reports.tables import train_time_summary, train_time_table
+    runs = pd.DataFrame({"task": ["reacher"] * 5, "variant": ["lstm"] * 3 + ["ac-lstm"] * 2, "seed": [0, 1, 2, 0, 1],
+                         "metrics.time/train_seconds": [1803.45, 1803.47, 1803.47, 900.0, 1100.0],
+                         "tags.worker": ["vm:1", "vm:1", "vm:1", "vm:2", "vm:3"], "status": "FINISHED"})
+    study = SimpleNamespace(ok=runs, children=runs, variants=["lstm", "ac-lstm"])
+    summary = train_time_summary(study)
+    assert summary.set_index("variant")["pack"].to_dict() == {"lstm": True, "ac-lstm": False}
+    rows = train_time_table(summary, study).rows
+    assert rows == [["LSTM", "1,803 (pack of 3)"], ["a.c. LSTM", "1,000 ± 100 (2 runs)"]]
