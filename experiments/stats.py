@@ -47,9 +47,10 @@ def seed_interval(values, confidence: float = CONFIDENCE, bounds: tuple[float, f
     Why a t-interval over the seeds' rates: a seed is one trained model, so the variant's rate varies between
     seeds beyond the binomial noise of its episodes, and with 3-5 seeds that spread is known only roughly. The
     t quantile with K - 1 degrees of freedom pays for that, so the interval holds its coverage with 3 seeds
-    (tests/test_reports.py simulates it: 94-95 % for a between-seed spread of 0, 8 and 15 points, 3 and 5
-    seeds, 34 episodes each). A seed's rate averages 34 outcomes, near enough to normal for the t. A cluster
-    bootstrap over 3 seeds draws from only 10 seed combinations and under-covers (83-86 % at a 15-point spread);
+    (tests/test_reports.py simulates it around a rate of 60 %: 94-95 % for a between-seed spread of 0, 8 and
+    15 points, 3 and 5 seeds, 34 episodes each; near a rate of 80 % with a 15-point spread, where the seeds'
+    rates are skewed, about 92 %). A seed's rate averages 34 outcomes, near enough to normal for the t. A cluster
+    bootstrap over 3 seeds draws from only 10 seed combinations and under-covers (about 85 % at a 15-point spread);
     a beta-binomial or random-effects model would need its between-seed variance estimated from the same
     3 seeds, with no better coverage for the added machinery. Costs: with 3 seeds the interval is wide (t = 4.3),
     and when every seed has the same rate it collapses to that rate (read the pooled Wilson interval then)."""

@@ -378,8 +378,8 @@ def _simulated_seed_rates(rng, mean: float, spread: float, seeds: int, replicate
 @pytest.mark.parametrize("spread", [0.0, 0.08, 0.15])
 def test_seed_interval_keeps_its_coverage_with_few_seeds(spread, seeds):
     """The seed-level interval covers the variant's rate (the mean over seeds' true rates) at least 93 % of the
-    time, for seeds that agree and seeds 8 or 15 points apart; the cluster bootstrap it replaced covered 83-86 %
-    at a 15-point spread with 3 seeds, the pooled Wilson interval 65 %."""
+    time, for seeds that agree and seeds 8 or 15 points apart; the cluster bootstrap it replaced covered about
+    85 % at a 15-point spread with 3 seeds, the pooled Wilson interval 65 %."""
     from experiments.stats import seed_interval
     mean, replicates = 0.6, 20_000  # coverage's standard error ~0.15 points
     rng = np.random.default_rng(int(100 * spread) + seeds)
@@ -492,3 +492,35 @@ def test_a_packs_training_time_is_reported_once_not_as_a_spread_over_seeds():
     assert summary.set_index("variant")["pack"].to_dict() == {"lstm": True, "ac-lstm": False}
     rows = train_time_table(summary, study).rows
     assert rows == [["LSTM", "1,803 (pack of 3)"], ["a.c. LSTM", "1,000 ± 100 (2 runs)"]]
+
+
+def test_comparisons_pair_the_seeds_that_saw_the_same_episodes():
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from reports import comparisons
+
+    def study(name, rows):  # rows: (variant, seed, success rate, episode seed)
+        evals = pd.DataFrame([{"run_id": f"{name}-{v}-{s}", "status": "FINISHED", "task": "reacher", "variant": v,
+                               "seed": s, "eval_task": "reacher", "success_rate": r, "n_rollouts": 34.0,
+                               "episode_seed": e} for v, s, r, e in rows])
+        children = evals[["run_id"]].assign(**{"params.data.start_joint_range": "0.1"})
+        return SimpleNamespace(name=name, eval_metrics=lambda: evals, children=children)
+
+    a = study("a", [("lstm", 0, 0.5, 10_000), ("lstm", 1, 0.6, 10_001), ("lstm", 2, 0.7, 10_002),
+                    ("ac-lstm", 0, 0.7, 10_000), ("ac-lstm", 1, 0.9, 10_001), ("ac-lstm", 2, 0.8, 10_002)])
+    b = study("b", [("lstm", 0, 0.4, 20_000), ("lstm", 1, 0.5, 20_001), ("lstm", 2, 0.6, 20_002)])
+    named = {"a": a, "b": b}
+    paired = comparisons.between(named, "reacher", "a/ac-lstm", "a/lstm")
+    assert (paired["test"], paired["n"]) == ("paired", 3)
+    assert paired["difference"] == pytest.approx(0.2) and paired["p"] == pytest.approx(0.25)
+    assert comparisons.sentence(paired) == "+20 points (95 % interval -5 to +45; paired, 3 seeds; p = 0.25)"
+    other_episodes = comparisons.between(named, "reacher", "a/lstm", "b/lstm")  # same seeds, other episodes
+    assert (other_episodes["test"], other_episodes["n"]) == ("groups", "3+3")
+    assert comparisons.between(named, "reacher", "a/ac-lstm+lstm", "b/lstm")["n"] == "6+3"  # pooled variants
+    cells = comparisons.paper_cells([a], "reacher")  # of the paper's comparisons, the one this study has
+    assert cells[["A", "B", "A − B (points)", "p", "test"]].values.tolist() == [
+        ["a.c. LSTM", "LSTM", "+20", "0.25", "paired, 3 seeds"]]
+    with pytest.raises(comparisons.ComparisonError, match="no finished lstm-mdn run"):
+        comparisons.between(named, "reacher", "a/lstm-mdn", "a/lstm")
