@@ -221,8 +221,9 @@ PACK_AGREEMENT = 0.01  # seeds of one pack log the pack's elapsed time, equal to
 
 def train_time_summary(study: Study) -> pd.DataFrame:
     """Per (task, variant): mean, std and count of the finished runs' training wall time (time/train_seconds), and
-    `pack`: the runs ran in one worker process and logged one time (a pack trains its seeds together and each
-    seed logs the pack's elapsed time), whose std is then NaN, not a spread over seeds."""
+    `pack`: the runs logged one time (within PACK_AGREEMENT) from one worker process (where they tagged theirs;
+    older studies did not): a pack trains its seeds together and each seed logs the pack's elapsed time, so its
+    std is NaN, not a spread over seeds. Separately trained runs do not agree to within seconds over hours."""
     col = "metrics.time/train_seconds"
     ok = study.ok
     if col not in ok.columns:
@@ -233,7 +234,8 @@ def train_time_summary(study: Study) -> pd.DataFrame:
     for r in out.itertuples():
         runs = ok[(ok["task"] == r.task) & (ok["variant"] == r.variant) & ok[col].notna()]
         seconds = runs[col].to_numpy(float)
-        one_process = worker[runs.index].nunique(dropna=False) == 1 and worker[runs.index].notna().all()
+        workers = worker[runs.index]
+        one_process = workers.isna().all() or (workers.notna().all() and workers.nunique() == 1)
         one_time = seconds.max() - seconds.min() <= PACK_AGREEMENT * seconds.max()
         packs.append(bool(len(runs) > 1 and one_process and one_time))
     out["pack"] = packs

@@ -492,6 +492,10 @@ def test_a_packs_training_time_is_reported_once_not_as_a_spread_over_seeds():
     assert summary.set_index("variant")["pack"].to_dict() == {"lstm": True, "ac-lstm": False}
     rows = train_time_table(summary, study).rows
     assert rows == [["LSTM", "1,803 (pack of 3)"], ["a.c. LSTM", "1,000 ± 100 (2 runs)"]]
+    untagged = runs.drop(columns="tags.worker")  # studies from before the worker tag: the times alone say it
+    assert train_time_summary(SimpleNamespace(ok=untagged))["pack"].tolist() == [True, False]
+    other_workers = runs.assign(**{"tags.worker": ["vm:1", "vm:2", "vm:1", "vm:2", "vm:3"]})
+    assert train_time_summary(SimpleNamespace(ok=other_workers))["pack"].tolist() == [False, False]
 
 
 def test_comparisons_pair_the_seeds_that_saw_the_same_episodes():
