@@ -1,6 +1,6 @@
 """The placeholders over several studies of one training task ({{ data_scaling(...) }}, {{ lever(...) }},
-{{ goal_switch(...) }}, {{ stacking(...) }}): how each builds its cells, table and figure, and the studies they
-name, a milestones study's stage included as NAME@ITERATION."""
+{{ goal_switch(...) }}, {{ stacking(...) }}, {{ comparisons(...) }}): how each builds its cells, table and
+figure, and the studies they name, a milestones study's stage included as NAME@ITERATION."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pandas as pd
 
 from experiments.stats import SUCCESS_NOTE
 from experiments.tracking import MILESTONE_ITERATION
-from reports import data_scaling, goal_switch, levers, stacking
+from reports import comparisons, data_scaling, goal_switch, levers, stacking
 from reports.plotting import FigureResult
 from reports.store import StoreError, Study, file_safe
 from reports.template import MULTI_STUDY
@@ -25,7 +25,7 @@ class AcrossStudies:
     name: str  # the figure's name
     cells: Callable[[list[Study], str], pd.DataFrame]
     table: Callable[[pd.DataFrame], pd.DataFrame]
-    figure: Callable[[pd.DataFrame, str, Path], FigureResult]
+    figure: Callable[[pd.DataFrame, str, Path], FigureResult] | None  # None: a table alone
     error: type[Exception]  # what cells raises when the studies cannot be put side by side
     note: Callable[[str], str]  # the table's columns explained, for a task
     out_name: Callable[[str, list[Study]], str]  # the figure's file name
@@ -60,6 +60,9 @@ ACROSS = {  # template.MULTI_STUDY's placeholders
                       f"last place ended); tower of at least k: blocks standing as a tower from the bottom up; "
                       f"closest approach: the tip's, to each block's grasp point."),
         lambda task, studies: f"{file_safe(task)}_stacking_{file_safe(studies[-1].name)}"),
+    "comparisons": AcrossStudies(
+        comparisons.TITLE, comparisons.paper_cells, comparisons.paper_table, None, comparisons.ComparisonError,
+        lambda task: comparisons.NOTE, lambda task, studies: ""),
 }
 assert set(ACROSS) == set(MULTI_STUDY), "every multi-study placeholder of the template language is built here"
 

@@ -3,7 +3,7 @@
 runs of training task TASK, at the number of demonstrations they trained on (their `data.n_demos` param, else
 the task's default; studies of different variants may share a number); the table gives, per evaluated task,
 variant and number of demonstrations, the statistics of every success table (experiments.stats), the figure
-the mean over seeds with the seed-aware 95 % interval."""
+the mean over seeds with the seed-level 95 % interval."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def scaling_cells(studies: list[Study], task: str) -> pd.DataFrame:
 
 
 def scaling_table(cells: pd.DataFrame) -> pd.DataFrame:
-    """THE success table (experiments.stats.success_table: per seed, Wilson and seed-aware intervals) with the
+    """THE success table (experiments.stats.success_table: per seed, seed-level and Wilson intervals) with the
     number of demonstrations after the variant: one row per (evaluated task, variant, demonstrations)."""
     if cells.empty:
         return pd.DataFrame()
@@ -74,7 +74,7 @@ def scaling_table(cells: pd.DataFrame) -> pd.DataFrame:
 
 
 def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
-    """One panel per evaluated task: success vs demonstrations (log axis), one line per variant, the seed-aware
+    """One panel per evaluated task: success vs demonstrations (log axis), one line per variant, the seed-level
     95 % interval as a band."""
     if cells.empty:
         return gap(NAME, TITLE, f"no finished runs of {task} in the named studies")
@@ -89,7 +89,7 @@ def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult
                 continue
             color = variant_color(variant, variants)
             ax.plot(got["n_demos"], 100 * got["mean"], "o-", color=color, ms=3, label=paper.variant_label(variant))
-            ax.fill_between(got["n_demos"], 100 * got["boot_low"], 100 * got["boot_high"], color=color, alpha=0.15)
+            ax.fill_between(got["n_demos"], 100 * got["seed_low"], 100 * got["seed_high"], color=color, alpha=0.15)
         ax.set_xscale("log")
         ax.set_xticks(counts, [str(n) for n in counts])
         ax.minorticks_off()
@@ -99,7 +99,7 @@ def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult
         ax.set_ylim(-3, 103)
         ax.grid(alpha=0.3)
     axes.flat[0].legend(loc="best", fontsize=8)
-    fig.suptitle(f"{TITLE} ({task} models; mean over seeds, band: seed-aware 95 %)")
+    fig.suptitle(f"{TITLE} ({task} models; mean over seeds, band: seed-level 95 %)")
     out = save(fig, folder, NAME, TITLE)
     plt.close(fig)
     return out

@@ -5,7 +5,7 @@ not written by hand: the settings (params data.*, model.*, train.*, eval.*) whos
 named studies, e.g. "n_demos=45, goal_switches=0.5". A setting a study did not log (it ran on the default: a
 data option of the task, a later field of stm.config) reads as that default. The table gives, per evaluated
 task, variant and setting, the statistics of every success table (experiments.stats); the figure, grouped bars
-with the seed-aware 95 % interval."""
+with the seed-level 95 % interval."""
 
 from __future__ import annotations
 
@@ -159,7 +159,7 @@ def lever_cells(studies: list[Study], task: str) -> pd.DataFrame:
 
 
 def lever_table(cells: pd.DataFrame) -> pd.DataFrame:
-    """THE success table (per seed, Wilson and seed-aware intervals) with the setting after the variant."""
+    """THE success table (per seed, seed-level and Wilson intervals) with the setting after the variant."""
     if cells.empty:
         return pd.DataFrame()
     table = success_table(cells, paper.variant_label, paper.task_label)
@@ -174,7 +174,7 @@ def _tick(setting: str) -> str:
 
 def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     """One panel per evaluated task: a group of bars per setting, one bar per variant (mean over seeds), the
-    seed-aware 95 % interval as an error bar."""
+    seed-level 95 % interval as an error bar."""
     if cells.empty:
         return gap(NAME, TITLE, f"no finished runs of {task} in the named studies")
     tasks = list(dict.fromkeys(cells["eval_task"]))
@@ -187,7 +187,7 @@ def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
             got = cells[(cells["eval_task"] == eval_task) & (cells["variant"] == variant)]
             x = np.array([settings.index(s) for s in got["setting"]]) + (j - (len(variants) - 1) / 2) * width
             mean = 100 * got["mean"].to_numpy(float)
-            err = np.clip([mean - 100 * got["boot_low"].to_numpy(float), 100 * got["boot_high"].to_numpy(float) - mean],
+            err = np.clip([mean - 100 * got["seed_low"].to_numpy(float), 100 * got["seed_high"].to_numpy(float) - mean],
                           0, None)
             ax.bar(x, mean, width, yerr=err, capsize=2, color=variant_color(variant, variants),
                    label=paper.variant_label(variant))
@@ -197,7 +197,7 @@ def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
         ax.set_ylim(0, 103)
         ax.grid(axis="y", alpha=0.3)
     legend_below(fig, axes.flat[0])
-    fig.suptitle(f"{TITLE} ({task} models; mean over seeds, bars: seed-aware 95 %)")
+    fig.suptitle(f"{TITLE} ({task} models; mean over seeds, bars: seed-level 95 %)")
     out = save(fig, folder, NAME, TITLE)
     plt.close(fig)
     return out

@@ -1,6 +1,6 @@
 """Success vs training iterations from a milestones study (experiments/milestones.py: the checkpoints an
 ablation kept, evaluated like its final models): one panel per evaluated task, one line per variant, the mean
-over seeds with its seed-aware 95 % interval (experiments.stats.success_cells) as a band."""
+over seeds with its seed-level 95 % interval (experiments.stats.success_cells) as a band."""
 
 from __future__ import annotations
 
@@ -41,14 +41,14 @@ def success_vs_iterations(study: Study, folder: Path) -> FigureResult:
                 continue
             color = variant_color(variant, variants)
             ax.plot(got["iteration"], 100 * got["mean"], "o-", color=color, label=variant, ms=3)
-            ax.fill_between(got["iteration"], 100 * got["boot_low"], 100 * got["boot_high"], color=color, alpha=0.15)
+            ax.fill_between(got["iteration"], 100 * got["seed_low"], 100 * got["seed_high"], color=color, alpha=0.15)
         ax.set_title(task)
         ax.set_xlabel("training iterations")
         ax.set_ylabel("success (%)")
         ax.set_ylim(-3, 103)
         ax.grid(alpha=0.3)
     axes.flat[0].legend(loc="best")
-    fig.suptitle(f"{TITLE}: {study.name} (mean over seeds; band: seed-aware 95 %)")
+    fig.suptitle(f"{TITLE}: {study.name} (mean over seeds; band: seed-level 95 %)")
     out = save(fig, folder, NAME, TITLE)
     plt.close(fig)
     return out

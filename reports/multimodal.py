@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from experiments.stats import interval, pct, success_cell
+from experiments.stats import SEED_COLUMN, WILSON_COLUMN, interval, pct, success_cell
 from reports.plotting import FigureResult, gap, mark_gap, panel_grid, save
 from reports.store import Study, order_variants
 
@@ -63,7 +63,7 @@ def _pooled(runs: pd.DataFrame, task: str, name: str) -> float:
 
 def multimodal_table(study: Study) -> pd.DataFrame:
     """One row per (multimodal task, variant), variants in order_variants' order: success (mean over seeds),
-    the pooled Wilson interval (ci_low, ci_high) and the seed-aware cluster bootstrap (boot_low, boot_high)
+    the pooled Wilson interval (ci_low, ci_high) and the seed-level t-interval (seed_low, seed_high)
     as experiments.stats.success_cell gives them, n (rollouts) and seeds, then the fraction of rollouts in each
     mode (`mode_<name>`), `between` and `collided` (NaN where the task has no such label). Fractions 0..1;
     a variant without a finished run is a row with seeds = 0."""
@@ -77,12 +77,12 @@ def multimodal_table(study: Study) -> pd.DataFrame:
             cell = success_cell({int(s): (r, n) for s, r, n in zip(runs["seed"], runs[rate], runs[n_col],
                                                                       strict=True)})
             row = {"eval_task": task, "variant": variant, "success": cell["mean"], "ci_low": cell["ci_low"],
-                   "ci_high": cell["ci_high"], "boot_low": cell["boot_low"], "boot_high": cell["boot_high"],
+                   "ci_high": cell["ci_high"], "seed_low": cell["seed_low"], "seed_high": cell["seed_high"],
                    "n": cell["n"], "seeds": cell["seeds"]}
             row.update({f"mode_{m}": _pooled(runs, task, f"mode_{m}") for m in modes})
             row.update({k: _pooled(runs, task, k) for k in ("between", "collided")})
             rows.append(row)
-    fixed = ["eval_task", "variant", "success", "ci_low", "ci_high", "boot_low", "boot_high", "n", "seeds"]
+    fixed = ["eval_task", "variant", "success", "ci_low", "ci_high", "seed_low", "seed_high", "n", "seeds"]
     modes = list(dict.fromkeys(k for r in rows for k in r if k.startswith("mode_")))
     return pd.DataFrame(rows, columns=[*fixed, *modes, "between", "collided"] if rows else fixed)
 
@@ -123,12 +123,12 @@ def multimodal_markdown(table: pd.DataFrame, variant_label=str) -> str:
         modes = [c for c in part.columns if c.startswith("mode_") and part[c].notna().any()]
         extra = [c for c in ("between", "collided") if c in part and part[c].notna().any()]
         lead = ["feedback"] if "feedback" in part else []
-        head = [*lead, "variant", "success", "Wilson 95%", "seed-aware 95%", "n", "seeds",
+        head = [*lead, "variant", "success", SEED_COLUMN, WILSON_COLUMN, "n", "seeds",
                 *(m.removeprefix("mode_") for m in modes), *extra]
         lines = [f"**{task}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for r in part.to_dict("records"):
             cells = [*(str(r[c]) for c in lead), variant_label(r["variant"]), pct(r["success"]),
-                     interval(r["ci_low"], r["ci_high"]), interval(r["boot_low"], r["boot_high"]),
+                     interval(r["seed_low"], r["seed_high"]), interval(r["ci_low"], r["ci_high"]),
                      str(int(r["n"])), str(int(r["seeds"])),
                      *(pct(r[c]) for c in [*modes, *extra])]
             lines.append("| " + " | ".join(cells) + " |")

@@ -21,7 +21,7 @@ Placeholders of the template:
     {{ provenance }}         per study used: name, kind, profile, git commit, machine/software, seeds,
                              rollouts per seed, pooled rollouts per cell, study wall time, dates
     {{ command }}            the exact regeneration command (a fenced code block)
-    {{ success_table }}      success rates (per seed, Wilson and seed-aware intervals) beside the paper's Table I
+    {{ success_table }}      success rates (per seed, seed-level and Wilson intervals) beside the paper's Table I
     {{ circle_table }}       circle drawing radial errors beside the paper's
     {{ train_time_table }}   training wall time per variant and task
     {{ sweep_table("TASK") }}  the sweep study of TASK: trial counts, best trial (params, objective), top 5
@@ -39,6 +39,10 @@ Placeholders of the template:
                              per study and variant: a table and a figure (reports.goal_switch)
     {{ stacking("TASK", "STUDY", ...) }}  which block the stacking episodes of TASK's models get to, per
                              study and variant: a table and a figure (reports.stacking)
+    {{ comparisons("TASK", "STUDY", ...) }}  the paper's comparisons of the variants within each study, and each
+                             study against the first per variant: differences, intervals, p (reports.comparisons)
+    {{ compare("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT", ...) }}  those of any pairs of rows, as a table;
+    {{ difference("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT") }}  one of them inline, for a sentence
 
 New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder(results, study) returning a
 Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
@@ -64,6 +68,7 @@ import pandas as pd
 
 from envs.fileio import atomic_write_text
 from reports import (
+    comparisons,
     figures,
     milestones,
     multimodal,
@@ -80,7 +85,7 @@ from reports.selection import Selection, select_studies
 from reports.store import DEFAULT_TRACKING_URI, Store, StoreError, Study, file_safe
 from reports.sweeps import sweep_task
 from reports.tables import Table
-from reports.template import MULTI_STUDY, SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
+from reports.template import ROW_PAIRS, SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +127,8 @@ class Results:
         sweep studies it uses (all selected ones when the template names none specifically)."""
         abl = [self.need_ablation(p) for p in placeholders if is_ablation_kind(p.kind)]
         abl = [self.named.get(whole_study(s.name), s) for s in abl]  # a stage NAME@ITERATION: its whole study
-        abl += [self.named[whole_study(name)] for p in placeholders if p.kind in MULTI_STUDY for name in p.studies]
+        abl += [self.named[whole_study(name)] for p in placeholders if not is_ablation_kind(p.kind)
+                for name in p.studies]
         default = self.ablation if any(is_ablation_kind(p.kind) and p.study is None for p in placeholders) else None
         abl = list({s.run_id: s for s in abl}.values())
         swp = list(dict.fromkeys(self.sweep_of(p).run_id for p in placeholders if p.kind.startswith("sweep_")))
@@ -198,9 +204,21 @@ class Results:
         table = kind.table(cells)
         text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
         text += f"\n- Studies: {', '.join(s.name for s in studies)}; {kind.note(task)}\n\n"
+        if kind.figure is None:  # a long table of its own: folded under a summary line
+            return f"<details><summary>{kind.name} ({len(table)} rows; {task} models)</summary>\n\n{text}</details>\n"
         return text + self.figure(studies[0], kind.name, kind.out_name(task, studies),
                                   lambda folder: kind.figure(cells, task, folder),
                                   label=f"{task}: {len(studies)} stud{'y' if len(studies) == 1 else 'ies'}")
+
+    def comparison(self, ph: Placeholder) -> str:
+        """{{ compare(...) }} (a table) or {{ difference(...) }} (inline) of rows of the named studies."""
+        eval_task, rows = ph.arg, ph.args[1:]
+        try:
+            if ph.kind == "difference":
+                return comparisons.sentence(comparisons.between(self.named, eval_task, *rows))
+            return comparisons.compare_table(self.named, eval_task, rows)
+        except comparisons.ComparisonError as exc:
+            raise ResultsError(f"{ph}: {exc}") from None
 
     # ------------------------------------------------------------------- render
     def render_one(self, ph: Placeholder, placeholders: list[Placeholder]) -> str:
@@ -217,6 +235,8 @@ class Results:
             return self.sweep_figures(ph)
         if ph.kind in ACROSS:
             return self.across(ph)
+        if ph.kind in ROW_PAIRS:
+            return self.comparison(ph)
         return self.ablation_figure(ph)
 
     def render(self, template: str) -> str:

@@ -1,5 +1,5 @@
-"""Statistics of the report: success cells over seeds with gaps marked (the intervals themselves live in
-experiments.stats, shared with the study summary), means over seeds, curve bands."""
+"""Statistics of the report: success cells over seeds with gaps marked (the intervals and comparisons themselves
+live in experiments.stats, shared with the study summary), means over seeds, curve bands."""
 
 from __future__ import annotations
 
@@ -8,16 +8,15 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from experiments.stats import CONFIDENCE, cluster_bootstrap_interval, success_cell, wilson_interval
+from experiments.stats import CONFIDENCE, seed_interval, success_cell, wilson_interval
 
-__all__ = ["CONFIDENCE", "aggregate_success", "cluster_bootstrap_interval", "curve_band", "mean_over_seeds",
-           "wilson_interval"]
+__all__ = ["CONFIDENCE", "aggregate_success", "curve_band", "mean_over_seeds", "seed_interval", "wilson_interval"]
 
 
 def aggregate_success(evals: pd.DataFrame, children: pd.DataFrame, variants: Sequence[str],
                       tasks: Sequence[str], model_task_of, all_seeds: Sequence[int]) -> pd.DataFrame:
     """One row per (variant, eval_task): experiments.stats.success_cell over the seeds that finished (mean/std
-    over seeds, each seed's rate, pooled successes and n with the Wilson interval, the cluster-bootstrap
+    over seeds, each seed's rate, pooled successes and n with the Wilson interval, the seed-level
     interval) and `status` ok | partial | gap with a `note` naming what is missing.
 
     evals: Study.eval_metrics(); children: Study.children; model_task_of(eval_task) -> training task.

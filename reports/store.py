@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_TRACKING_URI", "Store", "StoreError", "Study", "order_variants", "tracking_uri"]
 EVAL_METRIC = re.compile(r"^metrics\.(?P<task>[^/]+)/(?P<name>success_rate|success_ci_low|success_ci_high|"
-                         r"n_rollouts|final_distance_mean)$")
+                         r"n_rollouts|final_distance_mean|episode_seed)$")
 SOURCE_RUN_TAG = "export.run_id"  # an imported run's id in its original store (reports.studyimport)
 CIRCLE_METRIC = re.compile(r"^metrics\.circle/r(?P<r>\d+(?:\.\d+)?)/(?P<name>radial_rmse|max_radial_error_pct)$")
 
@@ -139,7 +139,7 @@ class Study:
 
     def eval_metrics(self) -> pd.DataFrame:
         """Long frame: one row per (child run, evaluated task) with success_rate, success_ci_low,
-        success_ci_high, n_rollouts, final_distance_mean (NaN where not logged)."""
+        success_ci_high, n_rollouts, final_distance_mean, episode_seed (NaN where not logged)."""
         if "eval" not in self._frames:
             self._frames["eval"] = _melt(self.children, EVAL_METRIC, "task", "eval_task")
         return self._frames["eval"]

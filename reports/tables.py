@@ -216,12 +216,37 @@ def circle_table(summary: pd.DataFrame, study: Study) -> Table:
 
 
 # ------------------------------------------------------------------------------------------- timings
+PACK_AGREEMENT = 0.01  # seeds of one pack log the pack's elapsed time, equal to well within 1 %
+
+
 def train_time_summary(study: Study) -> pd.DataFrame:
+    """Per (task, variant): mean, std and count of the finished runs' training wall time (time/train_seconds), and
+    `pack`: the runs logged one time (within PACK_AGREEMENT) from one worker process (where they tagged theirs;
+    older studies did not): a pack trains its seeds together and each seed logs the pack's elapsed time, so its
+    std is NaN, not a spread over seeds. Separately trained runs do not agree to within seconds over hours."""
     col = "metrics.time/train_seconds"
     ok = study.ok
     if col not in ok.columns:
-        return pd.DataFrame(columns=["task", "variant", "mean", "std", "count"])
-    return mean_over_seeds(ok.rename(columns={col: "train_seconds"}), ["task", "variant"], "train_seconds")
+        return pd.DataFrame(columns=["task", "variant", "mean", "std", "count", "pack"])
+    out = mean_over_seeds(ok.rename(columns={col: "train_seconds"}), ["task", "variant"], "train_seconds")
+    worker = ok["tags.worker"] if "tags.worker" in ok else pd.Series(None, index=ok.index)
+    packs = []
+    for r in out.itertuples():
+        runs = ok[(ok["task"] == r.task) & (ok["variant"] == r.variant) & ok[col].notna()]
+        seconds = runs[col].to_numpy(float)
+        workers = worker[runs.index]
+        one_process = workers.isna().all() or (workers.notna().all() and workers.nunique() == 1)
+        one_time = seconds.max() - seconds.min() <= PACK_AGREEMENT * seconds.max()
+        packs.append(bool(len(runs) > 1 and one_process and one_time))
+    out["pack"] = packs
+    out.loc[out["pack"], "std"] = float("nan")
+    return out
+
+
+def _train_time(hit: pd.Series) -> str:
+    if hit["pack"]:
+        return f"{hit['mean']:,.0f} (pack of {int(hit['count'])})"
+    return f"{hit['mean']:,.0f} ± {hit['std']:,.0f} ({int(hit['count'])} runs)"
 
 
 def train_time_table(summary: pd.DataFrame, study: Study) -> Table:
@@ -232,10 +257,12 @@ def train_time_table(summary: pd.DataFrame, study: Study) -> Table:
         row = [paper.variant_label(v)]
         for t in tasks:
             hit = summary[(summary["task"] == t) & (summary["variant"] == v)] if not summary.empty else summary
-            row.append(f"{hit['mean'].iloc[0]:.1f} ± {hit['std'].iloc[0]:.1f} ({int(hit['count'].iloc[0])})"
-                       if len(hit) else GAP)
+            row.append(_train_time(hit.iloc[0]) if len(hit) else GAP)
         rows.append(row)
-    notes = ["Training wall time per run (metric time/train_seconds), mean ± std over seeds (count) of finished runs."]
+    notes = ["Training wall time of finished runs (metric time/train_seconds). 'pack of K': the K seeds trained "
+             "together as one packed model in one process, and the number is that pack's wall time, once (not a "
+             "mean over seeds); otherwise mean ± std over separately trained runs. The runs log wall time only, "
+             "so a seed's CPU time is not known: the seeds of a pack share one process and one core."]
     return Table("train_time_table", "Training time per variant and task", columns, rows, notes, summary)
 
 

@@ -5,6 +5,8 @@ before any study is read so that a typo is one line naming it (with its line), n
     {{ figure("NAME") }}  {{ sweep_table("TASK") }}  {{ sweep_figure("TASK") }}  {{ sweep_figure("TASK", "NAME") }}
     {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}  {{ lever("TASK", "STUDY", "STUDY", ...) }}
     {{ goal_switch("TASK", "STUDY", "STUDY", ...) }}  {{ stacking("TASK", "STUDY", "STUDY", ...) }}
+    {{ comparisons("TASK", "STUDY", ...) }}  {{ compare("EVAL_TASK", "ROW", "ROW", ...) }}
+    {{ difference("EVAL_TASK", "ROW", "ROW") }}  (a ROW is STUDY/VARIANT[+VARIANT...]: reports.comparisons)
 
 The ablation tables and figures take an optional study="NAME" (a study_name or parent run id), e.g.
 {{ success_table(study="multimodal") }} or {{ figure("tip_paths", study="multimodal") }}; without it they show
@@ -21,9 +23,14 @@ from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 FIXED = ("provenance", "command")
 # placeholders whose arguments are a training task, then the studies (reports.across.ACROSS: reports.data_scaling,
 # reports.levers, reports.goal_switch, reports.stacking)
-MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking")
+MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking", "comparisons")
+# placeholders whose arguments are an evaluated task, then pairs of rows STUDY/VARIANT[+VARIANT...]
+# (reports.comparisons)
+ROW_PAIRS = ("compare", "difference")
+ROW_SEPARATOR = "/"
 # name -> (min, max) arguments
-WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), **{k: (2, 12) for k in MULTI_STUDY}}
+WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), **{k: (2, 12) for k in MULTI_STUDY},
+            "compare": (3, 21), "difference": (3, 3)}
 SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 STUDY = "study"  # the keyword that picks an ablation-kind placeholder's study
 
@@ -53,9 +60,12 @@ class Placeholder:
 
     @property
     def studies(self) -> tuple[str, ...]:
-        """The studies it names: those after the task of a MULTI_STUDY one, else its study="NAME" if any."""
+        """The studies it names: those after the task of a MULTI_STUDY one, those of the rows of a ROW_PAIRS one,
+        else its study="NAME" if any."""
         if self.kind in MULTI_STUDY:
             return self.args[1:]
+        if self.kind in ROW_PAIRS:
+            return tuple(dict.fromkeys(row.rpartition(ROW_SEPARATOR)[0] for row in self.args[1:]))
         return () if self.study is None else (self.study,)
 
     @property
@@ -78,7 +88,9 @@ class Vocabulary:
     def known(self) -> str:
         return ", ".join([*(f"{{{{ {k} }}}}" for k in (*FIXED, *self.tables)), '{{ figure("NAME") }}',
                           '{{ sweep_table("TASK") }}', '{{ sweep_figure("TASK"[, "NAME"]) }}',
-                          *(f'{{{{ {k}("TASK", "STUDY", ...) }}}}' for k in MULTI_STUDY)])
+                          *(f'{{{{ {k}("TASK", "STUDY", ...) }}}}' for k in MULTI_STUDY),
+                          '{{ compare("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT", ...) }}',
+                          '{{ difference("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT") }}'])
 
 
 def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
@@ -101,6 +113,9 @@ def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
         raise ResultsError(f"{ph}: {name} takes {lo}" + (f" or {hi}" if hi > lo else "") + " argument(s)")
     if name == "figure" and ph.arg not in vocab.figures:
         raise ResultsError(f"unknown figure {ph.arg!r} in {ph}; known: {', '.join(vocab.figures)}")
+    if name in ROW_PAIRS and (len(ph.args) % 2 == 0 or not all(ROW_SEPARATOR in a.strip(ROW_SEPARATOR)
+                                                                for a in ph.args[1:])):
+        raise ResultsError(f"{ph}: {name} takes an evaluated task, then pairs of rows STUDY{ROW_SEPARATOR}VARIANT")
     if name == "sweep_figure" and len(ph.args) == 2 and ph.args[1] not in SWEEP_FIGURES:
         raise ResultsError(f"unknown sweep figure {ph.args[1]!r} in {ph}; known: {', '.join(SWEEP_FIGURES)}")
     return ph

@@ -79,7 +79,8 @@ def test_ablation_smoke_end_to_end(smoke_store, tmp_path):
         assert drawn_colours(png) > 10  # paths, markers, axes and text: not a blank canvas
     # the report's success table (experiments.stats.success_table): what n counts is in its columns
     out = smoke_store.stdout
-    assert re.search(r"\| task +\| variant +\| success +\| per seed +\| Wilson 95% +\| seed-aware 95% +\| rollouts +"
+    assert re.search(r"\| task +\| variant +\| success +\| per seed +\| seed-level 95% +\| Wilson 95% \(rollouts "
+                     r"independent\) +\| rollouts +"
                      r"\| seeds +\|", out) and re.search(r"\| reacher-changing-goal +\| lstm +\|", out)
     assert f"#/experiments/{exp.experiment_id}/runs" in out
     assert "2 cell(s) run, 0 skipped" in out

@@ -46,17 +46,17 @@ def test_one_curve_from_two_studies(store, tmp_path):
     start = next(i for i, line in enumerate(lines) if line.startswith("| task"))
     table = [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines[start:]
              if line.startswith("|") and "---" not in line]
-    assert table[0] == ["task", "variant", "demos", "success", "per seed", "Wilson 95%", "seed-aware 95%", "rollouts",
-                        "seeds"]
+    assert table[0] == ["task", "variant", "demos", "success", "per seed", "seed-level 95%",
+                        "Wilson 95% (rollouts independent)", "rollouts", "seeds"]
     rows = {tuple(c[:3]): c[3:] for c in table[1:]}
     assert list(rows) == [("reacher", "LSTM", "4"), ("reacher", "LSTM", "6"), ("changing-goal reacher", "LSTM", "4"),
                           ("changing-goal reacher", "LSTM", "6")]  # by task, variant, then demonstrations
     for task, label in (("reacher", "reacher"), ("reacher-changing-goal", "changing-goal reacher")):
         for n in (4, 6):
             rate = pct(_success(store, f"demos{n}", task))
-            # one seed: its rate is the mean; no seed-aware interval; 2 rollouts
-            assert rows[(label, "LSTM", str(n))][:2] == [rate, rate]
-            assert rows[(label, "LSTM", str(n))][3:] == ["–", "2", "1"]
+            # one seed: its rate is the mean; no seed-level interval; 2 rollouts
+            assert rows[(label, "LSTM", str(n))][:3] == [rate, rate, "–"]
+            assert rows[(label, "LSTM", str(n))][4:] == ["2", "1"]
     assert "Studies: demos6, demos4" in text
     link = re.search(r"!\[Success vs number of demonstrations \(reacher: 2 studies\)\]\((figures/[^)]+\.png)\)", text)
     assert link and (tmp_path / link.group(1)).stat().st_size > 0

@@ -55,7 +55,7 @@ def test_table_rows_are_the_runs_numbers_and_the_rollouts_labels(study):
         assert row["success"] == pytest.approx(rates.mean())
         low, high = wilson(int(round(rates.sum() * ROLLOUTS)), ROLLOUTS * SEEDS)
         assert (row["ci_low"], row["ci_high"]) == pytest.approx((low, high))
-        assert row["boot_low"] <= row["success"] <= row["boot_high"]
+        assert row["seed_low"] <= row["success"] <= row["seed_high"]
         # the split is what the rollouts artifacts label, episode by episode (one-hot: modes + between = 1)
         arrays = [study.rollouts(r, task) for r in runs["run_id"]]
         modes = multimodal_tasks(study)[task]

@@ -95,10 +95,10 @@ def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
     for variant in ("lstm", "ac-lstm-mdn"):
         cells = next([c.strip() for c in line.strip("|").split("|")] for line in success.splitlines()
                      if re.match(rf"\| reacher +\| {re.escape(paper.variant_label(variant))} +\|", line))
-        task, _, rate, per_seed, wilson, seed_aware, rollouts, seeds, paper_rate = cells
+        task, _, rate, per_seed, seed_level, wilson, rollouts, seeds, paper_rate = cells
         assert paper_rate == f"{100 * paper.TABLE_I[variant]['reacher']:.0f}%"
         assert re.fullmatch(r"\d+%", rate) and re.fullmatch(r"\d+%", per_seed), cells  # smoke: one seed
-        assert re.fullmatch(r"\d+–\d+%", wilson) and seed_aware == "–", cells  # one seed: no seed-level interval
+        assert re.fullmatch(r"\d+–\d+%", wilson) and seed_level == "–", cells  # one seed: no seed-level interval
         assert (rollouts, seeds) == ("2", "1"), cells
     assert "### Circle drawing: radial error per radius" in text
     assert "### Training time per variant and task" in text
@@ -184,6 +184,9 @@ def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypa
     ("{{ figure }}", "needs its argument"),
     ('{{ data_scaling("reacher") }}', 'data_scaling takes 2 or 12 argument(s)'),
     ('{{ data_scaling("reacher", "nope") }}', "unknown study 'nope'"),
+    ('{{ compare("reacher", "a/lstm", "b/lstm", "c/lstm") }}', "compare takes an evaluated task, then pairs of rows"),
+    ('{{ difference("reacher", "lstm", "ac-lstm") }}', "difference takes an evaluated task, then pairs of rows"),
+    ('{{ difference("reacher", "nope/lstm", "nope/ac-lstm") }}', "unknown study 'nope'"),
     ("{{figure:success_bars}}", "template syntax error (line 1)"),
 ])
 def test_bad_template_is_a_one_line_error_and_writes_nothing(store, tmp_path, capsys, template, message):
@@ -229,8 +232,26 @@ def test_parse_template_and_command(tmp_path, monkeypatch):
     assert cmd == 'nox -s report -- --results --tracking-uri "$MLFLOW_TRACKING_URI" --template t.md'
 
 
+def test_comparisons_render_from_the_store(store, tmp_path):
+    name = _parents(store)["ablation"].data.tags["study_name"]
+    template = (f'{{{{ compare("reacher", "{name}/lstm", "{name}/ac-lstm-mdn") }}}}\n\n'
+                f'In a sentence: {{{{ difference("reacher", "{name}/lstm", "{name}/ac-lstm-mdn") }}}}.\n\n'
+                f'{{{{ comparisons("reacher", "{name}") }}}}\n')
+    proc = _results(store, tmp_path, template=template)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    text = (tmp_path / "docs" / "RESULTS.md").read_text()
+    # one seed per variant: no interval, and two models as groups of one
+    study = re.escape(f"({name})")
+    row = (rf"\| reacher +\| LSTM {study} +\| a\.c\. LSTM-MDN {study} +\| +[-+]?\d+ +\| – +\| +[\d.]+ +"
+           r"\| groups, 1\+1 models \|")
+    assert re.search(row, text), text[:1200]
+    assert re.search(r"In a sentence: [-+]?\d+ points \(95 % interval –; groups, 1\+1 models; p = [\d.]+\)\.", text)
+    assert "<details><summary>Comparisons of the variants" in text and "</details>" in text
+
+
 def test_repository_template_parses():
     phs = parse_template((REPO / "reports" / "RESULTS.template.md").read_text())
     kinds = {(p.kind, p.arg) for p in phs}
     assert {("provenance", None), ("command", None), ("budget_table", None), ("success_table", None),
-            ("multimodal_table", None), ("train_time_table", None), ("figure", "mode_paths")} <= kinds
+            ("multimodal_table", None), ("train_time_table", None), ("figure", "mode_paths"),
+            ("comparisons", "reacher"), ("difference", "reacher")} <= kinds
