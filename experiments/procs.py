@@ -54,8 +54,8 @@ def default_workers() -> int:
 
 
 def training_threads() -> int:
-    """Torch threads per training process: $OMP_NUM_THREADS (its first level) where set, else 1. On pick-and-place
-    (2 cores, loaded machine) 2 threads in one process gave 5-7x less throughput than two 1-thread processes."""
+    """Torch threads per training process: $OMP_NUM_THREADS (its first level) where set, else 1: the models are
+    small, so a second thread mostly waits at barriers, and two 1-thread processes train several times faster."""
     first = os.environ.get(THREADS_ENV, "").split(",")[0].strip()
     return int(first) if first.isdigit() and int(first) > 0 else 1
 
