@@ -42,7 +42,7 @@ class SawyerKinematics:
         names = self.chain.get_joint_parameter_names()
         if tuple(names) != ARM_JOINTS:
             raise URDFError(f"kinematic chain joints {names} differ from {ARM_JOINTS}")
-        self.dtype, self.device = dtype, torch.device(device)
+        self.urdf_path, self.dtype, self.device = Path(urdf_path), dtype, torch.device(device)
         self._hand_idx = int(self.chain.get_frame_indices(HAND_LINK)[0])
         self._tip_idx = int(self.chain.get_frame_indices(TIP_LINK)[0])
         self.lower = torch.as_tensor(LIMITS.lower, dtype=dtype, device=device)

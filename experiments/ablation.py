@@ -25,7 +25,7 @@ from experiments.cells import Cell, build_cells
 from experiments.claims import Claimed, claimed_cell, is_live
 from experiments.config import StudyConfig
 from experiments.pack import pack_units, run_unit
-from experiments.procs import default_workers, worker_pool
+from experiments.procs import default_workers, training_threads, worker_pool
 from experiments.schedule import prepare_datasets, run_scheduled
 from experiments.tracking import (
     ABLATION,
@@ -48,10 +48,6 @@ from experiments.worker import CellResult, mark_killed
 
 log = logging.getLogger(__name__)
 EXPERIMENT = ABLATION
-# One torch thread per cell: the models are small, so intra-op threads mostly spin; measured
-# on pick-place (2 cores, loaded machine) 2 threads cost ~10x the CPU time and ~5x the wall time
-# of 1 thread per iteration. Parallelism comes from the worker processes instead.
-TORCH_THREADS = 1
 
 
 @dataclass
@@ -161,8 +157,8 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     todo, outcome.skipped = prepare_runs(client, experiment_id, parent_id, cells)
     for key in outcome.skipped:
         log.info("skip %s: FINISHED with the same config hash", key)
-    units = pack_units(todo, cfg.pack)
     workers = cfg.workers or default_workers()
+    units = pack_units(todo, cfg.pack, workers)
     workers = max(1, min(workers, len(units))) if units else 1
     interactive = sys.stderr.isatty() if progress is None else progress
     log.info("study %r: %d cells (%d to run in %d job(s), %d done) with %d worker(s); store %s", study_name,
@@ -175,12 +171,12 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
         if workers == 1:
             prepare_datasets([cell for cell, _ in todo])  # once, here, before any worker needs them
             for unit in units:
-                got = run_unit(*_unit_args(unit), uri, interactive, level, TORCH_THREADS, *claim, False)
+                got = run_unit(*_unit_args(unit), uri, interactive, level, training_threads(), *claim, False)
                 _record_unit(outcome, unit, got, bar, len(todo), interactive, held)
         else:
             _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held)
         for cell, run_id in held:  # cells another command of this study trains: wait for them
-            got = claimed_cell(cell, uri, run_id, interactive, level, TORCH_THREADS, *claim, True)
+            got = claimed_cell(cell, uri, run_id, interactive, level, training_threads(), *claim, True)
             _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
     except KeyboardInterrupt:
         # interrupted cells are KILLED with their last checkpoint artifact: a re-run resumes them
@@ -254,7 +250,7 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
         with worker_pool(workers) as pool:
             # datasets built here meanwhile, so that no two workers build the same one (experiments.schedule)
             run_scheduled(units, workers, lambda unit: pool.submit(run_unit, *_unit_args(unit), uri, False, level,
-                                                                   TORCH_THREADS, *claim, False), record)
+                                                                   training_threads(), *claim, False), record)
     except BrokenProcessPool as exc:
         done = {r.run_id for r in outcome.results} | {run_id for _, run_id in held}
         client = Client(uri)

@@ -12,7 +12,7 @@ import logging
 import sys
 
 from experiments.config import ConfigError, StudyConfig, available_profiles, load_profile
-from experiments.procs import default_workers
+from experiments.procs import add_threads_option, default_workers, set_training_threads
 
 log = logging.getLogger("experiments")
 
@@ -36,6 +36,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "mixtures=20 (repeatable)")
     p.add_argument("--workers", type=int, default=None,
                    help="worker processes (default: $ACRMDN_WORKERS, else one per core)")
+    add_threads_option(p)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
@@ -50,7 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--variants", nargs="+", default=None, help="variants (default: the profile's)")
     ab.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1")
     ab.add_argument("--pack", type=int, default=None, metavar="K", help="train up to K seeds of a cell group "
-                    "(task x variant) together as one packed model (default: all of them; 1: each cell alone)")
+                    "(task x variant) together as one packed model (default: all of them, split into smaller "
+                    "packs while a worker process would otherwise idle; 1: each cell alone)")
     ab.add_argument("--study-name", default=None, help="parent run name (default: from the profile and config)")
     ab.add_argument("--worker", action="store_true", help="pull cells from a queue shared with other worker "
                     "commands (other hosts too; see docs/scale-out.md); --workers K local processes")
@@ -113,6 +115,12 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
     for noisy in ("alembic", "mlflow", "urllib3", "matplotlib"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+
+    try:
+        set_training_threads(getattr(args, "threads", None))
+    except ConfigError as e:
+        print(_one_line(f"error: {e}"), file=sys.stderr)
+        return 2
 
     if args.command in ("smoothing", "idm"):
         from experiments.postprocess import main as postprocess_main

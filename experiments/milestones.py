@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from experiments.procs import add_threads_option
 from experiments.tracking import (
     ABLATION,
     MILESTONE_ITERATION,
@@ -201,7 +202,7 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
                    feedback: str | None = None) -> dict[str, int]:
     """Evaluate every kept checkpoint of the study not evaluated yet (feeding back `feedback` instead of the
     cells' own: module docstring); counts by outcome."""
-    from experiments.procs import worker_pool
+    from experiments.procs import training_threads, worker_pool
 
     start = time.perf_counter()
     client = Client(uri)
@@ -218,7 +219,8 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
             _copy_final(client, m, run_id)
             counts["FINISHED"] += 1
     with worker_pool(max(1, workers)) as pool:
-        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, 1, feedback))
+        threads = training_threads()
+        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, threads, feedback))
                    for m, r in evaluate]
         for m, fut in futures:
             status, error = fut.result()
@@ -236,6 +238,7 @@ def add_parser(sub) -> None:
     p.add_argument("--variants", nargs="+", default=None, help="variants (default: all of the study's)")
     p.add_argument("--rollouts", type=int, default=None, help="episodes per seed and task (default: the cell's)")
     p.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
+    add_threads_option(p)
     p.add_argument("--feedback", choices=FEEDBACKS, default=None,
                    help="evaluate feeding back this instead of the cells' eval.feedback, final models included, "
                         "as the study <study>-milestones-feedback-<MODE>")

@@ -37,9 +37,11 @@ from experiments.worker import (
 log = logging.getLogger(__name__)
 
 
-def pack_units(todo: Sequence[tuple[Cell, str]], pack: int) -> list[list[tuple[Cell, str]]]:
+def pack_units(todo: Sequence[tuple[Cell, str]], pack: int, workers: int = 1) -> list[list[tuple[Cell, str]]]:
     """(cell, run id) pairs in units of at most `pack` cells (0: no limit) of one cell group: one
-    training task and variant, and configs that differ only in what a pack allows per seed."""
+    training task and variant, and configs that differ only in what a pack allows per seed. Without a
+    limit, the largest units are halved while there are fewer units than `workers`: a pack trains in one
+    process, and a core without a unit would idle."""
     from stm.packed_train import PER_SEED
 
     groups: dict[str, list[tuple[Cell, str]]] = {}
@@ -49,7 +51,12 @@ def pack_units(todo: Sequence[tuple[Cell, str]], pack: int) -> list[list[tuple[C
                     cell.dataset_seed, cell.eval_tasks))
         groups.setdefault(key, []).append((cell, run_id))
     size = pack or max([len(g) for g in groups.values()], default=1)
-    return [g[i: i + size] for g in groups.values() for i in range(0, len(g), size)]
+    units = [g[i: i + size] for g in groups.values() for i in range(0, len(g), size)]
+    while not pack and len(units) < workers and any(len(u) > 1 for u in units):
+        i = max(range(len(units)), key=lambda j: len(units[j]))  # the first of the largest
+        half = (len(units[i]) + 1) // 2
+        units[i: i + 1] = [units[i][:half], units[i][half:]]
+    return units
 
 
 def run_unit(cells: list[Cell], run_ids: list[str], uri: str, progress: bool, level: int,

@@ -24,11 +24,11 @@ from __future__ import annotations
 import logging
 import time
 
-from experiments.ablation import EXPERIMENT, TORCH_THREADS, StudyOutcome, finish_parent, prepare_runs
+from experiments.ablation import EXPERIMENT, StudyOutcome, finish_parent, prepare_runs
 from experiments.cells import Cell, build_cells
 from experiments.config import ConfigError, StudyConfig, from_dict
 from experiments.pack import pack_units, run_unit
-from experiments.procs import worker_pool
+from experiments.procs import training_threads, worker_pool
 from experiments.schedule import prepare_datasets
 from experiments.sweep_storage import describe, drain, open_storage, trials_in, worker_id
 from experiments.tracking import (
@@ -116,7 +116,7 @@ def _cell_objective(cfg: StudyConfig, cells: dict[str, Cell], client: Client, ur
         log.info("worker %s: %s (queue entry %d, run(s) %s)", worker_id(), ", ".join(c.key for c, _ in unit),
                  trial.number, ", ".join(run_ids))
         # the claims wait out a dead worker's claim on a run (on another host: up to the grace period)
-        got = run_unit([c for c, _ in unit], run_ids, uri, False, level, TORCH_THREADS,
+        got = run_unit([c for c, _ in unit], run_ids, uri, False, level, training_threads(),
                        cfg.sweep.heartbeat, cfg.sweep.grace_period, True)
         results = [g.result for g in got if g.kind != "done"]
         if not results:

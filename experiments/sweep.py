@@ -73,9 +73,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiments.ablation import TORCH_THREADS, command_line
+from experiments.ablation import command_line
 from experiments.config import ConfigError, StudyConfig, SweepConfig, config_hash, from_dict
-from experiments.procs import default_workers, worker_pool
+from experiments.procs import default_workers, training_threads, worker_pool
 from experiments.sweep_figures import importance_evaluator, param_importances, sweep_figures
 from experiments.sweep_objective import (
     MlflowTrialLink,
@@ -313,15 +313,15 @@ def run_sweep(cfg: StudyConfig) -> SweepOutcome:
     args = (cfg.to_dict(), spec, name, uri, experiment_id, parent_id)
     retries_left = bool(trials_in(study, "WAITING"))
     if workers <= 1:
-        _optimize(*args, max(remaining, 0), total, level, TORCH_THREADS, has_heartbeat(spec) or retries_left)
+        _optimize(*args, max(remaining, 0), total, level, training_threads(), has_heartbeat(spec) or retries_left)
     else:
         per = [remaining // workers + (i < remaining % workers) for i in range(workers)]
         with worker_pool(workers) as pool:
-            for f in [pool.submit(_optimize, *args, n, total, level, TORCH_THREADS, False, i)
+            for f in [pool.submit(_optimize, *args, n, total, level, training_threads(), False, i)
                       for i, n in enumerate(per)]:
                 f.result()
         if has_heartbeat(spec) or trials_in(study, "WAITING"):
-            _optimize(*args, 0, 0, level, TORCH_THREADS, True, workers)
+            _optimize(*args, 0, 0, level, training_threads(), True, workers)
     return _finish(cfg, client, spec, name, experiment_id, parent_id, start)
 
 

@@ -4,7 +4,7 @@
 
 One training iteration = forward, loss, backward, Adam step, on a batch at the
 paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
-reacher (3x64, 3 Gaussians, batch 45, 70 steps), with the task's state size.
+reacher (3x64, 3 Gaussians, batch 32, 70 steps), with the task's state size.
 Timed in the same run, interleaved round by round (the machine is shared, so
 medians of interleaved rounds give fair ratios): teacher forcing (tf),
 auto-conditioning with u = v = 2 and u = v = 5, and a plain reference (nn.LSTM +
@@ -15,8 +15,12 @@ auto-conditioned schedules'; window_speedup_packed_ac_u5v5 is a packed u = v = 5
 whole demos over one on windows of 40 steps after a 20-step burn-in (stm.windows); matmul_share_ac_u5v5
 is the share of one model's a.c. iteration spent in matrix products (torch.profiler; a lower bound) and
 packed_speedup_ceiling the most a pack of K could then gain (Amdahl: products cost K-fold, the rest
-once). Then 1,000 reacher rollouts of 70 steps with FK grounding, and 3 models' rollouts batched
-(stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an evaluation cell's).
+once). The floor (stm.floor): the matrix products of one tf and one a.c. u = v = 5 iteration, single and
+packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms per
+model-iteration / its fp32 floor. The tip kinematics of the fed-back state (stm.fk) against
+pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK
+grounding, and 3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000
+and for 34 episodes (an evaluation cell's).
 
 Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
 time also counts the other processes' load. Ratios are what to read.
@@ -39,6 +43,7 @@ from envs.tasks.base import Demos, Episode, StateLayout, Task
 from stm import mdn
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
+from stm.floor import record_matmuls, replayer
 from stm.model import STM, normalization_stats
 from stm.packed import PackedAdam, PackedSTM, clip_per_model, packed_unroll
 from stm.packed_rollout import generate_packed
@@ -47,7 +52,7 @@ from stm.train import DemoTensors, batch_loss
 
 SIZES = {  # paper sizes: (hidden, mixtures, batch, steps, gripper)
     "pick-place": dict(hidden=128, mixtures=20, batch=32, steps=170, gripper=True),
-    "reacher": dict(hidden=64, mixtures=3, batch=45, steps=70, gripper=False),
+    "reacher": dict(hidden=64, mixtures=3, batch=32, steps=70, gripper=False),
 }
 
 
@@ -139,17 +144,27 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin):
     return make
 
 
+FLOOR_CASES = ("tf", "ac_u5v5", "packed_tf", "packed_ac_u5v5")  # timed with their matrix-product floors
 MATMULS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm"}
+
+
+def _op_events(fn):
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    return prof.key_averages()
+
+
+def aten_calls(fn) -> int:
+    """ATen calls of one call of fn, nested ones included (torch.profiler)."""
+    return sum(e.count for e in _op_events(fn) if e.key.startswith("aten::"))
 
 
 def matmul_share(fn) -> float:
     """The share of one call's op time spent in matrix products (torch.profiler, self CPU time). The
     profiler's per-op cost inflates the other ops, so this is a lower bound of the share."""
-    from torch.profiler import ProfilerActivity, profile
-
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
-        fn()
-    events = prof.key_averages()
+    events = _op_events(fn)
     total = sum(e.self_cpu_time_total for e in events)
     return sum(e.self_cpu_time_total for e in events if e.key in MATMULS) / total if total else float("nan")
 
@@ -203,16 +218,30 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
              "packed_ac_u5v5_window": windowed(schedules["ac_u5v5"])}
     for fn in cases.values():  # warm-up
         fn()
+    matmuls = {k: record_matmuls(cases[k]) for k in FLOOR_CASES}
+    for k, calls in matmuls.items():  # the floors, timed in the same rounds
+        cases[f"floor_fp32_{k}"], cases[f"floor_bf16_{k}"] = replayer(calls), replayer(calls, torch.bfloat16)
     times: dict[str, list[float]] = {k: [] for k in cases}
     for _ in range(rounds):  # interleaved, so a load change hits every case alike
         for k, fn in cases.items():
             times[k].append(_time_once(fn, reps))
     med = {k: statistics.median(v) for k, v in times.items()}
+    per_model = {k: med[k] / (PACK if "packed" in k else 1) for k in med}  # floors too
     share = matmul_share(cases["ac_u5v5"])
     speedup = {k: round(PACK * med[k] / med[f"packed_{k}"], 3) for k in ("tf", "ac_u2v2", "ac_u5v5")}
     return {
         "size": size, "state_dim": task.layout.dim, **{k: spec[k] for k in ("hidden", "mixtures", "batch", "steps")},
-        "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items()},
+        "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items() if not k.startswith("floor")},
+        # the floor: the same iteration's matrix products replayed alone (stm.floor), per model-iteration (a pack's
+        # divided by its K); floor_ratio = ms per model-iteration / the fp32 floor
+        "ms_per_model_iter": {k: round(per_model[k] * 1e3, 2) for k in FLOOR_CASES},
+        "floor_ms_per_model_iter": {k: {dt: round(per_model[f"floor_{dt}_{k}"] * 1e3, 2) for dt in ("fp32", "bf16")}
+                                    for k in FLOOR_CASES},
+        "floor_ratio": {k: round(med[k] / med[f"floor_fp32_{k}"], 3) for k in FLOOR_CASES},
+        "bf16_floor_over_fp32_floor": {k: round(med[f"floor_bf16_{k}"] / med[f"floor_fp32_{k}"], 3)
+                                       for k in FLOOR_CASES},
+        "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
+        "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "ac_u5v5")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
         "ratio_tf_over_plain": round(med["tf"] / med["plain"], 3),
@@ -231,6 +260,47 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         # the clock's seconds per 1,000 auto-conditioned iterations of the whole pack (CPU seconds with --clock cpu)
         "packed_seconds_per_1000_ac_iters": {k: round(med[f"packed_{k}"] * 1e3, 1) for k in ("ac_u2v2", "ac_u5v5")},
     }
+
+
+FK_BATCHES = {"train": SIZES["pick-place"]["batch"], "train_packed": PACK * SIZES["pick-place"]["batch"],
+              "rollouts": 1000}  # the first two forward and backward, rollouts forward alone
+
+
+def fk_bench(rounds: int) -> dict:
+    """The fed-back state's tip position (stm.fk, closed form) against pytorch-kinematics (envs.kinematics):
+    CPU microseconds and ATen calls per call, at one model's and a pack's training batch and a rollout batch."""
+    fk = default_tip_kinematics(torch.float32)
+    gen = torch.Generator().manual_seed(0)
+    cases = {}
+    for name, batch in FK_BATCHES.items():
+        q = fk.kin.neutral + 0.2 * torch.randn(batch, 7, generator=gen)
+        for impl, kin in (("closed_form", fk), ("pytorch_kinematics", fk.kin)):
+            cases[name, impl] = _fk_call(kin, q, grad=name != "rollouts")
+    times: dict[tuple, list[float]] = {k: [] for k in cases}
+    for _ in range(rounds):
+        for k, fn in cases.items():
+            times[k].append(_time_once(fn, max(10, 6400 // FK_BATCHES[k[0]])))
+    us = {k: statistics.median(v) * 1e6 for k, v in times.items()}
+    impls = ("closed_form", "pytorch_kinematics")
+    return {"batch": FK_BATCHES, "backward": {name: name != "rollouts" for name in FK_BATCHES},
+            "us_per_call": {name: {i: round(us[name, i], 1) for i in impls} for name in FK_BATCHES},
+            "aten_calls": {name: {i: aten_calls(cases[name, i]) for i in impls} for name in FK_BATCHES},
+            "speedup_over_pytorch_kinematics": {name: round(us[name, impls[1]] / us[name, impls[0]], 2)
+                                                for name in FK_BATCHES}}
+
+
+def _fk_call(kin, q: torch.Tensor, grad: bool):
+    q = q.detach().requires_grad_(grad)
+    ones = torch.ones(q.shape[0], 3)
+
+    def call():
+        if grad:
+            kin.tip_position(q).backward(ones)
+        else:
+            with torch.no_grad():
+                kin.tip_position(q)
+    call()  # warm-up
+    return call
 
 
 def rollout_bench(n: int = 1000, steps: int = 70, rounds: int = 3) -> dict:
@@ -276,6 +346,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (0: leave torch's default)")
     ap.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
     ap.add_argument("--no-rollouts", action="store_true")
+    ap.add_argument("--no-fk", action="store_true", help="skip the tip kinematics' timing")
     ap.add_argument("--clock", choices=list(CLOCKS), default="cpu",
                     help="cpu: this process's CPU time (default; steady on a shared machine); wall: elapsed time")
     args = ap.parse_args(argv)
@@ -288,6 +359,8 @@ def main(argv: list[str] | None = None) -> dict:
               "clock": args.clock,
               "load_average_before": [round(x, 2) for x in load_before],
               "training": [training_bench(s, args.rounds, args.reps) for s in args.sizes]}
+    if not args.no_fk:
+        result["fk"] = fk_bench(args.rounds)
     if not args.no_rollouts:
         result["rollouts"] = rollout_bench()
     result["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
@@ -304,6 +377,15 @@ def main(argv: list[str] | None = None) -> dict:
                   f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
                   f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f} | windows of {r['window']} "
                   f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
+            print(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16: "
+                  + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}" for k, v in r["floor_ms_per_model_iter"].items())
+                  + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items()))
+        if "fk" in result:
+            fk = result["fk"]
+            us, calls = fk["us_per_call"], fk["aten_calls"]
+            print("tip FK, us per call, closed form / pytorch-kinematics (ATen calls): " + ", ".join(
+                f"{n} (batch {b}) {us[n]['closed_form']:.0f}/{us[n]['pytorch_kinematics']:.0f}"
+                f" ({calls[n]['closed_form']}/{calls[n]['pytorch_kinematics']})" for n, b in fk["batch"].items()))
         if "rollouts" in result:
             ro = result["rollouts"]
             print(f"rollouts: {ro['rollouts']} x {ro['steps']} steps with FK grounding in {ro['seconds']:.2f} s; "

@@ -154,3 +154,10 @@ def test_pack_is_a_typed_option_outside_every_hash():
         ["reacher/lstm/seed0", "reacher/lstm/seed1"], ["reacher/lstm/seed2"],
         ["reacher/ac-lstm-mdn/seed0", "reacher/ac-lstm-mdn/seed1"], ["reacher/ac-lstm-mdn/seed2"]]
     assert [len(u) for u in pack_units(todo, 0)] == [3, 3] and [len(u) for u in pack_units(todo, 1)] == [1] * 6
+    # no pack size asked for: packs halved while a worker process would idle; an explicit --pack is kept
+    assert [len(u) for u in pack_units(todo, 0, workers=2)] == [3, 3]
+    assert [len(u) for u in pack_units(todo, 0, workers=3)] == [2, 1, 3]
+    assert [len(u) for u in pack_units(todo, 0, workers=4)] == [2, 1, 2, 1]
+    assert [len(u) for u in pack_units(todo, 0, workers=9)] == [1] * 6
+    assert [len(u) for u in pack_units(todo, 3, workers=4)] == [3, 3]
+    assert sorted(c.key for u in pack_units(todo, 0, workers=4) for c, _ in u) == sorted(c.key for c, _ in todo)

@@ -189,6 +189,17 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
     assert 0 < share < 1 and entry["packed_speedup_ceiling"] == pytest.approx(1 / (share + (1 - share) / 3), rel=0.01)
     assert entry["window_speedup_packed_ac_u5v5"] == pytest.approx(ms["packed_ac_u5v5"] / ms["packed_ac_u5v5_window"],
                                                                    rel=0.02)
+    # the matrix-product floor, per model-iteration, side by side with the iterations of the same run
+    for k in ("tf", "ac_u5v5", "packed_tf", "packed_ac_u5v5"):
+        per_model = ms[k] / (3 if k.startswith("packed") else 1)
+        assert entry["ms_per_model_iter"][k] == pytest.approx(per_model, rel=0.02)
+        floor = entry["floor_ms_per_model_iter"][k]
+        assert entry["floor_ratio"][k] == pytest.approx(per_model / floor["fp32"], rel=0.05)
+        assert entry["matmuls_per_iter"][k] > 0 and floor["bf16"] > 0
+    assert entry["aten_calls_per_iter"]["ac_u5v5"] > entry["aten_calls_per_iter"]["tf"] > 0
+    fk = out["fk"]
+    assert set(fk["us_per_call"]) == set(fk["aten_calls"]) == {"train", "train_packed", "rollouts"}
+    assert all(c["closed_form"] < c["pytorch_kinematics"] for c in fk["aten_calls"].values())
     assert '"packed_speedup_ac"' in capsys.readouterr().out
 
 
