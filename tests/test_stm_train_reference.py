@@ -22,9 +22,8 @@ from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 from stm.checkpoint import save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.packed_rollout import generate_packed
-from stm.packed_train import train_packed
 from stm.rollout import generate
-from stm.train import train
+from stm.train import train, train_packed
 
 REFERENCE = Path(__file__).parent / "data" / "stm_train_reference.pt"
 LOSS_TOL, GRAD_NORM_RTOL, WEIGHT_TOL, ROLLOUT_TOL = 1e-5, 1e-4, 1e-6, 1e-5
