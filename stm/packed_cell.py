@@ -125,8 +125,9 @@ def fused_sequence(lstm: list[tuple[torch.Tensor, ...]], z: torch.Tensor, h: lis
     known input runs), from per-layer states h, c (K, B, H) or zeros; top hidden states (K, B, n, H) and the
     per-layer (h, c) after the last step."""
     outs, hn, cn = [], [], []
+    weights = [t.unbind(0) for layer in lstm for t in layer]  # one autograd node per tensor, not one per model
     for k in range(z.shape[0]):
-        flat = [t[k] for layer in lstm for t in layer]
+        flat = [w[k] for w in weights]
         hx = None if h is None else (torch.stack([x[k] for x in h]), torch.stack([x[k] for x in c]))
         if hx is None:
             zeros = z.new_zeros(len(lstm), z.shape[1], lstm[0][1].shape[-1])
