@@ -2,8 +2,8 @@
 
     python -m stm.bench [--json] [--rounds 5] [--threads 1] [--sizes reacher pick-place]
 
-One training iteration = forward, loss, backward, Adam step, on a batch at the
-paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
+One training iteration = forward, loss, backward, Adam step, as stm.train runs it (one model is a pack
+of one), on a batch at the paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
 reacher (3x64, 3 Gaussians, batch 45, 70 steps), with the task's state size.
 Timed in the same run, interleaved round by round (the machine is shared, so
 medians of interleaved rounds give fair ratios): teacher forcing (tf),
