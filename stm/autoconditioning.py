@@ -52,7 +52,8 @@ def segments(T: int, u: int, v: int) -> list[tuple[int, int]]:
 
 
 def iteration_schedule(cfg: TrainConfig, iteration: int) -> tuple[int, int]:
-    """(u, v) of the iteration after `iteration` done: teacher forcing (v = 0) through the tf_warmup."""
+    """(u, v) of a run's next iteration when `iteration` are done: teacher forcing (v = 0) for the first
+    tf_warmup."""
     return cfg.u, 0 if iteration < cfg.tf_warmup else cfg.v
 
 
@@ -86,9 +87,6 @@ def unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Ten
     stepper = PackedStackStepper(view.lstm, view.state_std)
     if hl is None:
         hl, cl = stepper.zeros(centred)
-        fresh = True  # zero states: the first chunk needs no stepping
-    else:
-        fresh = False
     layout = task.layout
     dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
     point = view.feedback_predictor(cfg.feedback, dims)
@@ -97,14 +95,15 @@ def unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Ten
     fed: list[tuple[int, torch.Tensor]] = []  # the self-fed (step, raw state), kept for return_inputs
     t = 0
     for n, k in segments(T, cfg.u, cfg.v):
-        if n <= STEPPED_GT_CHUNK and not (fresh and t == 0):
+        from_zero = t == 0 and burn is None  # the first chunk from zero states: a sequence call, however short
+        if n <= STEPPED_GT_CHUNK and not from_zero:
             block = []
             for j in range(n):
                 hl, cl = stepper(centred[:, :, t + j], hl, cl)
                 block.append(hl[-1])
             h = torch.stack(block, dim=2)
         elif K == 1:  # one model: the fused LSTM kernel beats the layer sequence
-            h, hl, cl = fused_sequence(view.lstm, z_gt[:, :, t: t + n], None if fresh and t == 0 else hl, cl)
+            h, hl, cl = fused_sequence(view.lstm, z_gt[:, :, t: t + n], *((None, None) if from_zero else (hl, cl)))
         else:  # K models: one batched layer sequence beats K fused calls
             h, hl, cl = layer_sequence(stepper, centred[:, :, t: t + n], hl, cl)
         hs.append(h)

@@ -1,10 +1,10 @@
-"""Packed training (stm.train.train_packed) trains each seed as stm.train.train trains it alone: same
-loss curve, weights and rollouts, for the four variants; a diverging seed leaves the pack
+"""Packed training (stm.train.train_packed) trains each seed as stm.train.train trains it alone (a pack of one):
+same loss curve, weights and rollouts, for the four variants; a diverging seed leaves the pack
 without disturbing the others; each seed checkpoints and resumes on its own.
 
-Tolerances: the pack computes each model's maths with batched matmuls (torch.bmm/baddbmm)
-and its own LSTM step where the single trainer uses torch.mm and oneDNN's fused LSTM, so
-single ops differ in the last bit (float32 rounding, ~1e-7 relative). Adam turns a relative
+Tolerances: a pack of K > 1 runs ground-truth chunks through its batched layer sequence where a pack
+of one uses oneDNN's fused LSTM, and stacks K seeds' batches, so single ops differ in the last bit
+(float32 rounding, ~1e-7 relative). Adam turns a relative
 gradient difference into at most about the same relative difference of an update of size
 lr, so after N steps weights differ by ~N * lr * 1e-6 at worst; measured: <= 1e-6 after 8
 steps at lr 3e-3. Asserted: losses within 1e-5 (relative and absolute), weights within
