@@ -1,4 +1,4 @@
-"""A cell group's seeds trained as one packed job (stm.packed_train): cells of one training task
+"""A cell group's seeds trained as one packed job (stm.train.train_packed): cells of one training task
 and variant that differ only in their seed share one process and one batched model.
 
 Each seed keeps its own MLflow child run with what experiments.worker.run_cell logs (the
@@ -42,7 +42,7 @@ def pack_units(todo: Sequence[tuple[Cell, str]], pack: int, workers: int = 1) ->
     training task and variant, and configs that differ only in what a pack allows per seed. Without a
     limit, the largest units are halved while there are fewer units than `workers`: a pack trains in one
     process, and a core without a unit would idle."""
-    from stm.packed_train import PER_SEED
+    from stm.train import PER_SEED
 
     groups: dict[str, list[tuple[Cell, str]]] = {}
     for cell, run_id in todo:
@@ -92,9 +92,9 @@ def run_unit(cells: list[Cell], run_ids: list[str], uri: str, progress: bool, le
 
 def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], log_level: int = logging.INFO,
              threads: int | None = None) -> list[CellResult]:
-    """Train the cells (one cell group's seeds) with one stm.packed_train.train_packed call, each
+    """Train the cells (one cell group's seeds) with one stm.train.train_packed call, each
     in its own run as run_cell would; one CellResult per cell, in order."""
-    from stm.packed_train import train_packed
+    from stm.train import train_packed
 
     setup_process(log_level, threads)
     cells = [as_cell(c) for c in cells]

@@ -8,7 +8,7 @@ success rate (robust where one knocked-off block makes a mean distance of metres
 pick-and-place). The median pruner watches the validation metric through `on_validation`.
 
 Seeds (`sweep.seeds` = K): each trial trains seeds sweep.seed .. sweep.seed+K-1 of the same
-configuration (K > 1: together, with stm.packed_train.train_packed, which gives each seed what
+configuration (K > 1: together, with stm.train.train_packed, which gives each seed what
 `train` would) and returns the mean of the K per-seed objectives ("objective/seed<s>" on the
 trial's run): "val" the mean of each seed's last validation metric; "final_distance" and
 "failure_rate" over each seed's own evaluation episodes (evaluate_model picks them from the
@@ -250,8 +250,7 @@ def train_seeds(model_cfg, train_cfgs: list, task, demos, buffer: MetricBuffer,
                 watch: SeedValidation) -> tuple[list, float, int]:
     """Train one model per train config (seed): `train` for one, `train_packed` for several;
     (models, training seconds, iterations). A seed whose training diverged fails the trial."""
-    from stm.packed_train import train_packed
-    from stm.train import train
+    from stm.train import train, train_packed
 
     with tempfile.TemporaryDirectory(prefix="acrmdn-trial-") as tmp:
         if len(train_cfgs) == 1:

@@ -230,8 +230,8 @@ class CellRun:
         metrics, details = evaluate_model(result.model, list(cell.eval_tasks), cell.eval_dict(), seed=cell.seed,
                                           phi_mode=train_cfg.phi_mode, data=cell.data,
                                           train_feedback=train_cfg.feedback, temperature=train_cfg.temperature)
-        metrics["time/train_seconds"] = result.seconds
         log_metrics(client, run_id, metrics)
+        metrics["time/train_seconds"] = result.seconds  # in the run since training ended (above): once
         n_fig = cell.eval.figures
         roll_dir = work / "rollouts"
         roll_dir.mkdir()

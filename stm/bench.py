@@ -2,8 +2,8 @@
 
     python -m stm.bench [--json] [--rounds 5] [--threads 1] [--sizes reacher pick-place]
 
-One training iteration = forward, loss, backward, Adam step, on a batch at the
-paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
+One training iteration = forward, loss, backward, Adam step, as stm.train runs it (one model is a pack
+of one), on a batch at the paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
 reacher (3x64, 3 Gaussians, batch 32, 70 steps), with the task's state size.
 Timed in the same run, interleaved round by round (the machine is shared, so
 medians of interleaved rounds give fair ratios): teacher forcing (tf),
@@ -41,14 +41,15 @@ from torch import nn
 from envs.robot import NEUTRAL_Q
 from envs.tasks.base import Demos, Episode, StateLayout, Task
 from stm import mdn
+from stm.autoconditioning import unroll
+from stm.batches import DemoTensors
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.floor import record_matmuls, replayer
 from stm.model import STM, normalization_stats
-from stm.packed import PackedAdam, PackedSTM, clip_per_model, packed_unroll
+from stm.packed import PackedAdam, PackedSTM, clip_per_model
 from stm.packed_rollout import generate_packed
 from stm.rollout import generate
-from stm.train import DemoTensors, batch_loss
 
 SIZES = {  # paper sizes: (hidden, mixtures, batch, steps, gripper)
     "pick-place": dict(hidden=128, mixtures=20, batch=32, steps=170, gripper=True),
@@ -114,25 +115,26 @@ def _time_once(fn, reps: int) -> float:
     return (_clock() - start) / reps
 
 
-def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin):
-    """A training-iteration factory for a pack of PACK models (each its own seed's init), every
-    model on the same batch: packed unroll, per-model losses, backward, per-model clipping, Adam."""
+def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK):
+    """A training-iteration factory for a pack of k models (each its own seed's init; one model is a pack of one,
+    as stm.train trains it), every model on the same batch: unroll, per-model losses, backward, per-model
+    clipping, Adam."""
     models = []
-    for seed in range(PACK):
+    for seed in range(k):
         torch.manual_seed(seed)
         models.append(STM(model_cfg, task.layout, *stats))
     pack = PackedSTM.from_models(models)
     params = list(pack.stacked)
-    opt, clips, active = PackedAdam(params, [1e-4] * PACK), torch.ones(PACK), torch.arange(PACK)
-    gens = [torch.Generator().manual_seed(seed) for seed in range(PACK)]
-    states, q, psi, mask = (t.expand(PACK, *t.shape) for t in (batch.states, batch.q, batch.psi, batch.mask))
-    burn = None if batch.burn is None else tuple(t.expand(PACK, *t.shape) for t in batch.burn)
-    steps = [batch.mask.shape[1]] * PACK
+    opt, clips, active = PackedAdam(params, [1e-4] * k), torch.ones(k), torch.arange(k)
+    gens = [torch.Generator().manual_seed(seed) for seed in range(k)]
+    states, q, psi, mask = (t.expand(k, *t.shape) for t in (batch.states, batch.q, batch.psi, batch.mask))
+    burn = None if batch.burn is None else tuple(t.expand(k, *t.shape) for t in batch.burn)
+    steps = [batch.mask.shape[1]] * k
 
     def make(cfg: TrainConfig):
         def step():
             view = pack.view()
-            raw = packed_unroll(view, states, q, psi, steps, task, cfg, kin, gens, burn=burn)
+            raw = unroll(view, states, q, psi, steps, task, cfg, kin, gens, burn)
             losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask)
             for p in params:
                 p.grad = None
@@ -186,20 +188,10 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
     batch = data.batch(torch.arange(spec["batch"]))
     torch.manual_seed(0)
     model = STM(ModelConfig(hidden_size=spec["hidden"], num_layers=3, mixtures=spec["mixtures"]), task.layout, *stats)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
-    gen = torch.Generator().manual_seed(0)
     plain = PlainMDN(task.layout.dim, spec["hidden"], 3, spec["mixtures"])
     plain_opt = torch.optim.Adam(plain.parameters(), lr=1e-4)
     x, y = model.normalize(batch.states[:, :-1]), model.normalize(batch.states[:, 1:])
-
-    def stm_step(cfg: TrainConfig):
-        def step():
-            loss = batch_loss(model, batch, task, cfg, kin, gen)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-            opt.step()
-        return step
+    stm_step = _packed_step(task, stats, model.config, batch, kin, k=1)  # one model: stm.train's pack of one
 
     def plain_step():
         loss = plain.loss(x, y)

@@ -2,10 +2,10 @@
 
 Why: a fused nn.LSTM call pays ~100 us of set-up per layer, too much for one or two
 steps, and a cell written in autograd ops records ~30 graph nodes per step. Here one
-step of the whole stack is ONE autograd node (`_StackStep`): the forward runs the gate
+step of the whole stack is ONE autograd node (`StackStep`): the forward runs the gate
 maths without recording, the backward is the textbook LSTM backward. The weight
 gradient is not computed per step: each step leaves its ([x, h], d gates) rows in a
-`_Deferred` store and the node that handed out the weights (`_Weights`, upstream of
+`DeferredGrads` store and the node that handed out the weights (`DeferredWeights`, upstream of
 every step) turns them into one matmul per layer when autograd reaches it, after all
 the steps (autograd runs a node only once every consumer of its outputs is done).
 
@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 
-class _Deferred:
+class DeferredGrads:
     """Per unroll: the ([x, h], d gates) rows each layer's steps left for the weight gradient."""
 
     def __init__(self, layers: int):
@@ -31,11 +31,11 @@ class _Deferred:
         self.dgates: list[list[torch.Tensor]] = [[] for _ in range(layers)]
 
 
-class _Weights(torch.autograd.Function):
+class DeferredWeights(torch.autograd.Function):
     """Identity on (w_t, b) per layer; backward = the deferred weight gradients of all steps."""
 
     @staticmethod
-    def forward(ctx, store: _Deferred, *wb: torch.Tensor):
+    def forward(ctx, store: DeferredGrads, *wb: torch.Tensor):
         ctx.store = store
         ctx.set_materialize_grads(False)
         return tuple(t.view_as(t) for t in wb)
@@ -126,7 +126,7 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
     return below, grad_h, grad_c, dgs
 
 
-class _StackStep(torch.autograd.Function):
+class StackStep(torch.autograd.Function):
     """One time step of the L-layer stack: x (B, D), per layer h_k, c_k (B, H) -> h_k', c_k'
     (or, for a pack of K models, (K, B, .) each, with weights (K, I, 4H) and biases (K, 1, 4H)).
 
@@ -134,7 +134,7 @@ class _StackStep(torch.autograd.Function):
     the order i, f, o, g, those of g doubled, so that one sigmoid gives all four gates."""
 
     @staticmethod
-    def forward(ctx, x, store: _Deferred, *args):
+    def forward(ctx, x, store: DeferredGrads, *args):
         L = len(args) // 4
         hs, cs, wb = list(args[:L]), list(args[L: 2 * L]), args[2 * L:]
         ws, bs = list(wb[0::2]), list(wb[1::2])
@@ -154,6 +154,14 @@ class _StackStep(torch.autograd.Function):
         return (dx, None, *grad_h, *grad_c) + (None,) * (2 * L)
 
 
+def gate_order(H: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), and the scale that doubles the g rows: tanh(x) =
+    2 sigmoid(2x) - 1, so one sigmoid covers all four gates (tanh costs several times a sigmoid per element)."""
+    order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
+    scale = torch.cat([torch.ones(3 * H), torch.full((H,), 2.0)])
+    return order, scale
+
+
 class StackStepper:
     """Steps an nn.LSTM's stack one time step at a time (create one per unroll, inside the
     autograd graph: it rearranges the weights once)."""
@@ -165,11 +173,8 @@ class StackStepper:
         (W / s) x - (W / s) m would cancel catastrophically where s is tiny.)"""
         H, L = lstm.hidden_size, lstm.num_layers
         self.layers = L
-        self.store = _Deferred(L)
-        # nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), the g rows doubled: tanh(x) = 2 sigmoid(2x) - 1,
-        # so one sigmoid covers all four gates (tanh costs several times a sigmoid per element here)
-        order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
-        scale = torch.cat([torch.ones(3 * H), torch.full((H,), 2.0)])
+        self.store = DeferredGrads(L)
+        order, scale = gate_order(H)
         wb = []
         for k in range(L):  # W^T of [x, h] -> gates, and the summed bias
             w_ih, b = getattr(lstm, f"weight_ih_l{k}"), getattr(lstm, f"bias_ih_l{k}") + getattr(lstm, f"bias_hh_l{k}")
@@ -177,10 +182,10 @@ class StackStepper:
                 w_ih = w_ih / in_std
             w = torch.cat([w_ih, getattr(lstm, f"weight_hh_l{k}")], dim=1)
             wb += [(w[order] * scale[:, None]).t(), b[order] * scale]
-        self.wb = _Weights.apply(self.store, *wb)
+        self.wb = DeferredWeights.apply(self.store, *wb)
 
     def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
                  ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """x (B, D), per-layer h, c (B, H) -> the next per-layer h, c (top layer last)."""
-        out = _StackStep.apply(x, self.store, *h, *c, *self.wb)
+        out = StackStep.apply(x, self.store, *h, *c, *self.wb)
         return list(out[: self.layers]), list(out[self.layers:])

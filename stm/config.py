@@ -92,7 +92,7 @@ class TrainConfig(_Config):
     checkpoint_every: NonNegativeInt = 500  # iterations between checkpoints (0: only at the end)
     log_every: NonNegativeInt = 10  # iterations between on_metrics calls
     val_every: NonNegativeInt = 0  # iterations between validations (0: never)
-    val_episodes: PositiveInt = 16  # fresh task episodes rolled out for the validation metric (stm.train.Validation)
+    val_episodes: PositiveInt = 16  # fresh task episodes rolled out for the validation metric (stm.validation)
     max_seconds: NonNegativeFloat = 0.0  # wall-clock budget of the run, resumed runs included (0: none)
     seed: int = 0
 

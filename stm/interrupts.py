@@ -1,5 +1,5 @@
 """Ctrl-C during training: held until the training step in progress is whole, so that an interrupted
-training checkpoints a consistent state where it stands (stm.train, stm.packed_train) instead of
+training checkpoints a consistent state where it stands (stm.train) instead of
 losing the iterations since its last periodic checkpoint. A busy study worker is stopped the same
 way (experiments/procs.py interrupts its main thread as a SIGINT would)."""
 

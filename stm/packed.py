@@ -5,8 +5,8 @@ stack steps with batched matmuls (stm.packed_cell), the head is one baddbmm, the
 are per model. A pack is built from K ordinary STMs (`PackedSTM.from_models`, so each
 model keeps the initialisation its seed gives alone) and model k comes back out as an
 ordinary STM (`extract`). The optimiser (`PackedAdam`) and gradient clipping
-(`clip_per_model`) act per model, so each model trains as if alone; stm.packed_train
-runs the loop.
+(`clip_per_model`) act per model, so each model trains as if alone; stm.autoconditioning
+unrolls a pack and stm.train runs the loop (a single model is a pack of one).
 """
 
 from __future__ import annotations
@@ -15,10 +15,7 @@ import torch
 from torch import nn
 
 from stm import mdn
-from stm.model import STM, feedback_state
-from stm.packed_cell import PackedStackStepper, layer_sequence
-from stm.train import _STEPPED_GT_CHUNK
-from stm.windows import burn_in_state
+from stm.model import STM
 
 
 class PackedSTM(nn.Module):
@@ -82,13 +79,18 @@ class PackedSTM(nn.Module):
 class PackView:
     """The tensors one unroll of a (sub-)pack reads: the LSTM layers, the head, normalisation."""
 
-    def __init__(self, pack: PackedSTM, p: dict[str, torch.Tensor]):
+    def __init__(self, pack: PackedSTM | STM, p: dict[str, torch.Tensor]):
         self.config, self.dim, self.is_mdn = pack.config, pack.dim, pack.is_mdn
         self.state_mean, self.state_std = pack.state_mean, pack.state_std
         self.lstm = [tuple(p[f"lstm.{w}_l{k}"] for w in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"))
                      for k in range(pack.config.num_layers)]
         self.head_w, self.head_b = p["head.weight"], p["head.bias"]  # (K, out, H), (K, out)
         self.K = self.head_w.shape[0]
+
+    @classmethod
+    def of_model(cls, model: STM) -> PackView:
+        """One STM as a pack of one, on the model's own parameters (gradients reach them)."""
+        return cls(model, {n: p.unsqueeze(0) for n, p in model.named_parameters()})
 
     def normalize(self, s: torch.Tensor) -> torch.Tensor:
         return (s - self.state_mean) / self.state_std
@@ -135,100 +137,6 @@ class PackView:
             return point(out[..., :m], out[..., m:].unflatten(-1, (m, dims)))
 
         return predict
-
-
-def fused_sequence(view: PackView, z: torch.Tensor, h: list[torch.Tensor] | None = None,
-                   c: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
-    """Normalised inputs z (K, B, n, D) through each model's stack in one fused LSTM call per
-    model (oneDNN's multi-step kernel on CPU: per model it beats any batched step for long
-    known input runs); top hidden states (K, B, n, H) and per-layer (h, c) after the last step."""
-    outs, hn, cn = [], [], []
-    for k in range(view.K):
-        flat = [t[k] for layer in view.lstm for t in layer]
-        hx = None if h is None else (torch.stack([x[k] for x in h]), torch.stack([x[k] for x in c]))
-        if hx is None:
-            zeros = z.new_zeros(len(view.lstm), z.shape[1], view.lstm[0][1].shape[-1])
-            hx = (zeros, zeros)
-        out, hk, ck = torch._VF.lstm(z[k], hx, flat, True, len(view.lstm), 0.0, True, False, True)
-        outs.append(out)
-        hn.append(hk)
-        cn.append(ck)
-    hn_, cn_ = torch.stack(hn, 1), torch.stack(cn, 1)  # (L, K, B, H)
-    return torch.stack(outs), list(hn_.unbind(0)), list(cn_.unbind(0))
-
-
-def packed_unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Tensor, steps: list[int],
-                  task, cfg, kin, gens: list[torch.Generator],
-                  burn: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-    """Head outputs (K, B, T, out) of K models, each under cfg's (u, v) schedule, as
-    stm.train.unroll gives per model. states (K, B, T+1, D), q (K, B, T+1, 7), psi (K, B, T+1, P):
-    each model's batch padded to the longest; steps[k] = model k's own T (its input noise and
-    samples are drawn for its own steps only, from gens[k], so each generator advances as alone).
-    burn: windows' burn-in (stm.windows), raw states (K, B, n, D) and where they are valid."""
-    K, B, T1, D = states.shape
-    T = T1 - 1
-    mean = view.state_mean
-    z_gt = view.normalize(states[:, :, :-1])
-    noisy = cfg.input_noise > 0
-    if noisy:  # each model's noise from its own generator, over its own steps (as train draws it)
-        noise = torch.zeros_like(z_gt)
-        for k in range(K):
-            noise[k, :, : steps[k]] = cfg.input_noise * torch.randn((B, steps[k], D), generator=gens[k])
-        z_gt = z_gt + noise
-    centred = z_gt * view.state_std if noisy else states[:, :, :-1] - mean  # the stepper folds in the std
-    stepper = PackedStackStepper(view.lstm, view.state_std)
-    hl, cl = stepper.zeros(centred)
-    if burn is not None:
-        hl, cl = burn_in_state(PackedStackStepper(view.lstm, view.state_std), burn[0] - mean, burn[1], hl, cl)
-    if cfg.v == 0:
-        return view.head(fused_sequence(view, z_gt, *((hl, cl) if burn is not None else ()))[0])
-    hs: list[torch.Tensor] = []  # top hidden states, chunks (K, B, n, H)
-    layout = task.layout
-    dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
-    point = view.feedback_predictor(cfg.feedback, dims)
-    predict = (lambda h, _t: point(h)) if point is not None else _sampler(view, cfg, gens, steps)
-    t = 0
-    while t < T:
-        n = min(cfg.u, T - t)  # ground-truth steps: stepped if few (a layer sequence's set-up costs more)
-        if n > _STEPPED_GT_CHUNK or t == 0:
-            h, hl, cl = layer_sequence(stepper, centred[:, :, t: t + n], hl, cl)  # (measured: beats K fused calls)
-        else:
-            block = []
-            for j in range(n):
-                hl, cl = stepper(centred[:, :, t + j], hl, cl)
-                block.append(hl[-1])
-            h = torch.stack(block, dim=2)
-        hs.append(h)
-        t += n
-        if t >= T:
-            break
-        qt, block = q[:, :, t - 1], []
-        for _ in range(min(cfg.v, T - t)):  # self-fed steps
-            s, qt = feedback_state(task, kin, predict(hl[-1], t), qt, psi[:, :, t], cfg.phi_mode)
-            if cfg.detach_feedback:
-                s, qt = s.detach(), qt.detach()
-            hl, cl = stepper(s - mean, hl, cl)
-            block.append(hl[-1])
-            t += 1
-        hs.append(torch.stack(block, dim=2))
-    return view.head(torch.cat(hs, dim=2))
-
-
-def _sampler(view: PackView, cfg, gens: list[torch.Generator], steps: list[int]):
-    """Sampled feedback: each model draws from its own generator, only at its own steps."""
-
-    def predict(h: torch.Tensor, t: int) -> torch.Tensor:
-        raw = view.head(h)
-        out = []
-        for k in range(view.K):
-            la, mu, ls = view.mixture(raw[k])
-            if t < steps[k]:
-                out.append(mdn.sample(la, mu, ls, temperature=cfg.temperature, generator=gens[k]))
-            else:  # past this model's batch: masked out, no draw
-                out.append(mdn.component_mean(la, mu))
-        return view.denormalize(torch.stack(out))
-
-    return predict
 
 
 def clip_per_model(params: list[torch.Tensor], max_norms: torch.Tensor) -> torch.Tensor:

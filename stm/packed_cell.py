@@ -11,15 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from stm.cell import _Deferred, _StackStep, _Weights
-
-# nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), the g rows doubled (one sigmoid for all gates), as in stm.cell
-
-
-def _gate_order(H: int) -> tuple[torch.Tensor, torch.Tensor]:
-    order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
-    scale = torch.cat([torch.ones(3 * H), torch.full((H,), 2.0)])
-    return order, scale
+from stm.cell import DeferredGrads, DeferredWeights, StackStep, gate_order
 
 
 class PackedStackStepper:
@@ -32,20 +24,20 @@ class PackedStackStepper:
     def __init__(self, lstm: list[tuple[torch.Tensor, ...]], in_std: torch.Tensor | None = None):
         H = lstm[0][1].shape[-1]
         self.layers = len(lstm)
-        self.store = _Deferred(self.layers)
-        order, scale = _gate_order(H)
+        self.store = DeferredGrads(self.layers)
+        order, scale = gate_order(H)
         wb = []
         for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(lstm):
             if k == 0 and in_std is not None:
                 w_ih = w_ih / (in_std if in_std.dim() == 1 else in_std[:, None, :])
             w = torch.cat([w_ih, w_hh], dim=2)[:, order] * scale[:, None]  # (K, 4H, I + H)
             wb += [w.transpose(1, 2), ((b_ih + b_hh)[:, order] * scale).unsqueeze(1)]
-        self.wb = _Weights.apply(self.store, *wb)
+        self.wb = DeferredWeights.apply(self.store, *wb)
 
     def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
                  ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """x (K, B, D), per-layer h, c (K, B, H) -> the next per-layer h, c (top layer last)."""
-        out = _StackStep.apply(x, self.store, *h, *c, *self.wb)
+        out = StackStep.apply(x, self.store, *h, *c, *self.wb)
         return list(out[: self.layers]), list(out[self.layers:])
 
     def zeros(self, x: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
@@ -124,3 +116,25 @@ def layer_sequence(stepper: PackedStackStepper, x: torch.Tensor, h: list[torch.T
         h_out.append(hn)
         c_out.append(cn)
     return x, h_out, c_out
+
+
+def fused_sequence(lstm: list[tuple[torch.Tensor, ...]], z: torch.Tensor, h: list[torch.Tensor] | None = None,
+                   c: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
+    """Normalised inputs z (K, B, n, D) through each model's stack (`lstm` as PackedStackStepper's) in one
+    fused LSTM call per model (oneDNN's multi-step kernel on CPU: per model it beats any batched step for long
+    known input runs), from per-layer states h, c (K, B, H) or zeros; top hidden states (K, B, n, H) and the
+    per-layer (h, c) after the last step."""
+    outs, hn, cn = [], [], []
+    weights = [t.unbind(0) for layer in lstm for t in layer]  # one autograd node per tensor, not one per model
+    for k in range(z.shape[0]):
+        flat = [w[k] for w in weights]
+        hx = None if h is None else (torch.stack([x[k] for x in h]), torch.stack([x[k] for x in c]))
+        if hx is None:
+            zeros = z.new_zeros(len(lstm), z.shape[1], lstm[0][1].shape[-1])
+            hx = (zeros, zeros)
+        out, hk, ck = torch._VF.lstm(z[k], hx, flat, True, len(lstm), 0.0, True, False, True)
+        outs.append(out)
+        hn.append(hk)
+        cn.append(ck)
+    hn_, cn_ = torch.stack(hn, 1), torch.stack(cn, 1)  # (L, K, B, H)
+    return torch.stack(outs), list(hn_.unbind(0)), list(cn_.unbind(0))

@@ -16,7 +16,7 @@ from stm.fk import default_tip_kinematics
 from stm.model import STM, feedback_state, initial_state
 from stm.packed import PackedSTM, PackView
 from stm.packed_cell import PackedStackStepper
-from stm.rollout import Rollouts, _padded_psi, _restart_mask
+from stm.rollout import Rollouts, padded_psi, restart_mask
 
 
 def _step(wb: list[torch.Tensor], x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]):
@@ -70,7 +70,7 @@ def generate_packed(models: PackedSTM | list[STM], task: Task, episodes: list[Ep
     horizons = np.array([ep.horizon for ep in episodes], dtype=np.int64)
     H = int(horizons.max())
     start = time.perf_counter()
-    psi = _padded_psi(episodes, H)
+    psi = padded_psi(episodes, H)
     B = len(episodes)
     q0 = torch.as_tensor(np.stack([ep.q0 for ep in episodes]), dtype=torch.float32)
     s = initial_state(task, kin, q0, psi[:, 0]).expand(K, B, -1)
@@ -80,7 +80,7 @@ def generate_packed(models: PackedSTM | list[STM], task: Task, episodes: list[Ep
     zeros = torch.zeros(K, B, pack.config.hidden_size)
     h, c = [zeros] * pack.config.num_layers, [zeros] * pack.config.num_layers
     grip_idx = task.layout.grip.start if task.layout.gripper else None
-    restarts = _restart_mask(episodes, H)
+    restarts = restart_mask(episodes, H)
     for t in range(H):
         if t > 0 and restarts[:, t].any():
             rows = restarts[:, t]

@@ -60,7 +60,7 @@ class Rollouts:
         return len(self.horizons)
 
 
-def _padded_psi(episodes: list[Episode], horizon: int) -> torch.Tensor:
+def padded_psi(episodes: list[Episode], horizon: int) -> torch.Tensor:
     rows = []
     for ep in episodes:
         psi = np.asarray(ep.psi, dtype=np.float32)
@@ -72,7 +72,7 @@ def _padded_psi(episodes: list[Episode], horizon: int) -> torch.Tensor:
     return torch.as_tensor(np.stack(rows))
 
 
-def _restart_mask(episodes: list[Episode], horizon: int) -> torch.Tensor:
+def restart_mask(episodes: list[Episode], horizon: int) -> torch.Tensor:
     """(B, H+1) bool: True where an episode starts a new skill (info["restart_steps"])."""
     mask = torch.zeros(len(episodes), horizon + 1, dtype=torch.bool)
     for i, ep in enumerate(episodes):
@@ -125,7 +125,7 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     horizons = np.array([ep.horizon for ep in episodes], dtype=np.int64)
     H = int(horizons.max())
     start = time.perf_counter()
-    psi = _padded_psi(episodes, H)
+    psi = padded_psi(episodes, H)
     q = torch.as_tensor(np.stack([ep.q0 for ep in episodes]), dtype=torch.float32)
     s = initial_state(task, kin, q, psi[:, 0])
     B = len(episodes)
@@ -134,7 +134,7 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     qs[:, 0] = q
     hc = None
     grip_idx = task.layout.grip.start if task.layout.gripper else None
-    restarts = _restart_mask(episodes, H)
+    restarts = restart_mask(episodes, H)
     restarts[:, 0] = True  # every episode starts a segment
     commit = feedback in ("segment_component", "segment_track") and model.is_mdn
     chosen = torch.zeros(B, dtype=torch.long)

@@ -1,7 +1,8 @@
 """docs/architecture.md's recipes, followed as written: a toy task (one module with a registered
 Task subclass) and a toy variant (one registry entry), both defined in a temporary module outside
 the package, run through a smoke study in this process (one worker: spawned workers would not
-import the temporary module)."""
+import the temporary module); and a training metric added where the recipe says, reaching every
+seed's run of a study whose seeds train as one pack."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mlflow import MlflowClient
 
@@ -79,3 +81,38 @@ def test_a_toy_task_and_a_toy_variant_run_through_a_smoke_study(toy_module, monk
     # the toy variant's overrides reached its training config; lstm trains teacher-forced (v = 0)
     assert (cells["toy-ac-lstm"].data.params["train.u"], cells["toy-ac-lstm"].data.params["train.v"]) == ("1", "3")
     assert cells["lstm"].data.params["train.v"] == "0"
+
+
+def test_a_training_metric_reaches_every_seed_of_a_packed_study(monkeypatch):
+    """"Add a metric", step 2: a metric added to what the training loop reports (stm.train.training_metrics) is in
+    every cell's run of a study of two seeds, which train together as one pack; and the training time is logged
+    once per run."""
+    import stm.train
+    from experiments.cli import main
+
+    reported, packs = stm.train.training_metrics, []
+    train_packed = stm.train.train_packed
+
+    def with_toy_metric(history, log_every, seconds):
+        return {**reported(history, log_every, seconds), "train/toy_last_loss": history["train/loss"][-1]}
+
+    def recording(model_cfg, train_cfgs, *args, **kwargs):
+        packs.append(len(train_cfgs))
+        return train_packed(model_cfg, train_cfgs, *args, **kwargs)
+
+    monkeypatch.setattr(stm.train, "training_metrics", with_toy_metric)
+    monkeypatch.setattr(stm.train, "train_packed", recording)
+    uri = f"sqlite:///{Path.cwd() / 'mlflow.db'}"  # absolute, as in the test above
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    code = main(["ablation", "--profile", "smoke", "--variants", "ac-lstm-mdn", "--seeds", "2", "--workers", "1",
+                 "--set", "eval.rollouts=2", "--set", "eval.figures=0"])
+    assert code == 0 and packs == [2]
+
+    client = MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("ablation").experiment_id])
+    cells = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    assert sorted(r.data.tags["seed"] for r in cells) == ["0", "1"]
+    for run in cells:
+        toy = client.get_metric_history(run.info.run_id, "train/toy_last_loss")
+        assert [m.step for m in toy] == [5, 10] and all(np.isfinite(m.value) for m in toy)
+        assert len(client.get_metric_history(run.info.run_id, "time/train_seconds")) == 1

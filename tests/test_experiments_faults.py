@@ -144,18 +144,18 @@ def test_nan_loss_fails_its_cell_with_the_iteration_and_the_study_goes_on(tmp_pa
     from experiments.ablation import run_study
     from experiments.config import load_profile
 
-    original = st.batch_loss
+    original = st.unroll
     calls = {"mdn": 0}
 
-    def poisoned(model, *a, **k):  # the MDN variant's 4th batch gives a NaN loss
-        loss = original(model, *a, **k)
-        if model.config.head == "mdn":
+    def poisoned(view, *a, **k):  # the MDN variant's 4th batch gives a NaN loss
+        raw = original(view, *a, **k)
+        if view.is_mdn:
             calls["mdn"] += 1
             if calls["mdn"] == 4:
-                return loss * math.nan
-        return loss
+                return raw * math.nan
+        return raw
 
-    monkeypatch.setattr(st, "batch_loss", poisoned)
+    monkeypatch.setattr(st, "unroll", poisoned)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     cfg = load_profile("smoke", ["train.val_every=0", "eval.figures=0", "eval.rollouts=2"],
                        variants=["ac-lstm-mdn", "lstm"], workers=1, study_name="nan")

@@ -7,13 +7,14 @@ import torch
 
 from envs.robot import NEUTRAL_Q
 from envs.tasks.base import Episode
+from stm.autoconditioning import batch_loss
+from stm.batches import DemoTensors
 from stm.bench import SIZES, BenchTask, _packed_step, bench_demos
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed_rollout import generate_packed
 from stm.rollout import generate
-from stm.train import DemoTensors, batch_loss
 
 pytestmark = pytest.mark.bench
 

@@ -1,10 +1,10 @@
-"""Packed training (stm.packed_train) trains each seed as stm.train.train trains it alone: same
-loss curve, weights and rollouts, for the four variants; a diverging seed leaves the pack
+"""Packed training (stm.train.train_packed) trains each seed as stm.train.train trains it alone (a pack of one):
+same loss curve, weights and rollouts, for the four variants; a diverging seed leaves the pack
 without disturbing the others; each seed checkpoints and resumes on its own.
 
-Tolerances: the pack computes each model's maths with batched matmuls (torch.bmm/baddbmm)
-and its own LSTM step where the single trainer uses torch.mm and oneDNN's fused LSTM, so
-single ops differ in the last bit (float32 rounding, ~1e-7 relative). Adam turns a relative
+Tolerances: a pack of K > 1 runs ground-truth chunks through its batched layer sequence where a pack
+of one uses oneDNN's fused LSTM, and stacks K seeds' batches, so single ops differ in the last bit
+(float32 rounding, ~1e-7 relative). Adam turns a relative
 gradient difference into at most about the same relative difference of an update of size
 lr, so after N steps weights differ by ~N * lr * 1e-6 at worst; measured: <= 1e-6 after 8
 steps at lr 3e-3. Asserted: losses within 1e-5 (relative and absolute), weights within
@@ -22,10 +22,9 @@ from stm.checkpoint import load_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.packed import PackedSTM
 from stm.packed_rollout import generate_packed
-from stm.packed_train import check_packable, train_packed
 from stm.registry import VARIANTS
 from stm.rollout import generate
-from stm.train import train
+from stm.train import check_packable, train, train_packed
 
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
 BASE = TrainConfig(iters=8, batch_size=4, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0)
@@ -221,7 +220,7 @@ def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(
     import signal
     import threading
 
-    import stm.packed_train
+    import stm.train
 
     if threading.current_thread() is not threading.main_thread():
         pytest.skip("signals reach the main thread only")
@@ -229,7 +228,7 @@ def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(
     model_cfg, cfgs = _configs("ac-lstm-mdn", checkpoint_every=3, feedback="sample")
     paths = [tmp_path / f"s{s}.pt" for s in SEEDS]
     full = train_packed(model_cfg, cfgs, task, demos)
-    real, calls = stm.packed_train.packed_unroll, []
+    real, calls = stm.train.unroll, []
 
     def unroll_then_ctrl_c(*args, **kwargs):
         calls.append(1)
@@ -238,7 +237,7 @@ def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(
             signal.raise_signal(signal.SIGINT)
         return out
 
-    monkeypatch.setattr(stm.packed_train, "packed_unroll", unroll_then_ctrl_c)
+    monkeypatch.setattr(stm.train, "unroll", unroll_then_ctrl_c)
     seen = []
     with pytest.raises(KeyboardInterrupt):
         train_packed(model_cfg, cfgs, task, demos, checkpoint_paths=paths,

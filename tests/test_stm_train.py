@@ -5,10 +5,14 @@ import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import default_kinematics
+from stm.autoconditioning import batch_loss, schedule, segments
+from stm.autoconditioning import unroll_model as unroll
+from stm.batches import DemoTensors
 from stm.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, load_model, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.model import STM, feedback_state, normalization_stats
-from stm.train import DemoTensors, TrainingDiverged, batch_loss, schedule, train, unroll
+from stm.packed import PackedSTM
+from stm.train import TrainingDiverged, train
 
 KIN = default_kinematics(torch.float32)
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
@@ -23,6 +27,10 @@ def toy():
 def test_schedule_pattern():
     assert schedule(12, 2, 3).tolist() == [1, 1, 0, 0, 0, 1, 1, 0, 0, 0, 1, 1]
     assert schedule(4, 5, 0).all()
+    # the runs the unroll follows are the schedule's
+    for T, u, v in ((12, 2, 3), (13, 2, 3), (4, 5, 0), (7, 1, 4), (3, 5, 5)):
+        runs = [bool(x) for n, k in segments(T, u, v) for x in [1] * n + [0] * k]
+        assert runs == schedule(T, u, v).tolist()
 
 
 def _model(task, demos, cfg=TINY):
@@ -98,7 +106,7 @@ def test_resume_reproduces_the_uninterrupted_run(toy, tmp_path):
         train(ModelConfig(hidden_size=7), cfg, task, demos, checkpoint_path=path)
 
 
-def test_nan_guard_names_iteration_and_keeps_last_good_checkpoint(toy, tmp_path):
+def test_nan_guard_names_iteration_and_keeps_last_good_checkpoint(toy, tmp_path, monkeypatch):
     task, demos = toy
     path = tmp_path / "ckpt.pt"
     cfg = TrainConfig(iters=20, batch_size=3, checkpoint_every=4, log_every=1, u=2, v=1)
@@ -107,22 +115,18 @@ def test_nan_guard_names_iteration_and_keeps_last_good_checkpoint(toy, tmp_path)
     def sabotage(iteration, metrics):
         if iteration == 6:  # poison the weights: iteration 7 computes a NaN loss
             with torch.no_grad():
-                for p in holder["model"].parameters():
+                for p in holder["pack"].stacked:
                     p.fill_(math.nan)
 
-    import stm.train as st
-    original = st.STM
+    original = PackedSTM.from_models
 
-    def capture(*a, **k):
-        holder["model"] = original(*a, **k)
-        return holder["model"]
+    def capture(models):
+        holder["pack"] = original(models)
+        return holder["pack"]
 
-    st.STM = capture
-    try:
-        with pytest.raises(TrainingDiverged, match="iteration 7") as exc:
-            train(TINY, cfg, task, demos, checkpoint_path=path, on_metrics=sabotage)
-    finally:
-        st.STM = original
+    monkeypatch.setattr(PackedSTM, "from_models", staticmethod(capture))
+    with pytest.raises(TrainingDiverged, match="iteration 7") as exc:
+        train(TINY, cfg, task, demos, checkpoint_path=path, on_metrics=sabotage)
     assert exc.value.iteration == 7
     ckpt = load_checkpoint(path)
     assert ckpt["iteration"] == 4
@@ -213,7 +217,7 @@ def test_input_noise_only_perturbs_ground_truth_inputs_in_training(toy):
 def test_validation_uses_fresh_episodes_when_the_task_has_a_kinematic_error():
     import numpy as np
 
-    from stm.train import VAL_SEED, Validation
+    from stm.validation import VAL_SEED, Validation
 
     class ToyWithError(ToyReach):
         def kinematic_error(self, tip, episode):
@@ -289,7 +293,7 @@ def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(
     cfg = TrainConfig(iters=12, batch_size=4, lr=3e-3, u=2, v=2, feedback="sample", checkpoint_every=5,
                       log_every=1, seed=3)
     full = train(TINY, cfg, task, demos)
-    real, calls = stm.train.batch_loss, []
+    real, calls = stm.train.unroll, []
 
     def loss_then_ctrl_c(*args, **kwargs):
         calls.append(1)
@@ -298,7 +302,7 @@ def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(
             signal.raise_signal(signal.SIGINT)
         return out
 
-    monkeypatch.setattr(stm.train, "batch_loss", loss_then_ctrl_c)
+    monkeypatch.setattr(stm.train, "unroll", loss_then_ctrl_c)
     path, seen = tmp_path / "ckpt.pt", []
     with pytest.raises(KeyboardInterrupt):
         train(TINY, cfg, task, demos, checkpoint_path=path, on_checkpoint=lambda p, it: seen.append(it))

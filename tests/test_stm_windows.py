@@ -8,9 +8,11 @@ import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import default_kinematics
+from stm.autoconditioning import unroll_model as unroll
+from stm.batches import DemoTensors
 from stm.config import ModelConfig, TrainConfig
 from stm.model import STM, normalization_stats
-from stm.train import DemoTensors, train, unroll
+from stm.train import train
 from stm.windows import sample_windows
 
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
