@@ -9,7 +9,7 @@ reference.
 
 `unroll` runs K models with independent weights (a pack, stm.packed; one model is a pack of one) through one
 schedule. Known inputs go through the LSTM stack many steps at a time: a fused LSTM call per model where the run
-is teacher-forced or there is one model, otherwise one batched layer sequence for all K (stm.packed_cell); short
+is teacher-forced or there is one model, otherwise one batched layer sequence for all K (stm.packed_lstm_step); short
 ground-truth chunks between self-fed ones are stepped (a sequence call's set-up costs more than two steps). The
 self-fed steps go one by one through the stack step (one autograd node per step, hand-written backward, weight
 gradients deferred to one matmul per layer), fed from a prediction computed from only the head rows the feedback
@@ -26,7 +26,7 @@ from stm import mdn
 from stm.config import TrainConfig
 from stm.model import STM, feedback_state
 from stm.packed import PackView
-from stm.packed_cell import PackedStackStepper, fused_sequence, layer_sequence
+from stm.packed_lstm_step import PackedStackStepper, fused_sequence, layer_sequence
 from stm.windows import burn_in_state
 
 STEPPED_GT_CHUNK = 2  # ground-truth chunks up to this long (after the first) are stepped, not sequence calls

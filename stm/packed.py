@@ -1,7 +1,7 @@
 """K state transition models with independent weights as one packed model.
 
 Every parameter of stm.model.STM is stacked on a leading model axis (K, ...): the LSTM
-stack steps with batched matmuls (stm.packed_cell), the head is one baddbmm, the losses
+stack steps with batched matmuls (stm.packed_lstm_step), the head is one baddbmm, the losses
 are per model. A pack is built from K ordinary STMs (`PackedSTM.from_models`, so each
 model keeps the initialisation its seed gives alone) and model k comes back out as an
 ordinary STM (`extract`). The optimiser (`PackedAdam`) and gradient clipping

@@ -15,7 +15,7 @@ from stm import mdn
 from stm.fk import default_tip_kinematics
 from stm.model import STM, feedback_state, initial_state
 from stm.packed import PackedSTM, PackView
-from stm.packed_cell import PackedStackStepper
+from stm.packed_lstm_step import PackedStackStepper
 from stm.rollout import Rollouts, padded_psi, restart_mask
 
 

@@ -1,6 +1,6 @@
 """The optimised auto-conditioned unroll (stm.autoconditioning.unroll: fused/stepped ground-truth chunks,
 a feedback head cut to the rows it reads with the denormalisation folded in, the hand-written
-LSTM stack step of stm.cell with the input normalisation folded in, deferred weight gradients)
+LSTM stack step of stm.lstm_step with the input normalisation folded in, deferred weight gradients)
 computes the same loss and gradients as a straightforward step-by-step reference."""
 
 import pytest
@@ -9,9 +9,9 @@ from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from stm.autoconditioning import batch_loss, schedule
 from stm.batches import DemoTensors
-from stm.cell import StackStepper
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
+from stm.lstm_step import StackStepper
 from stm.model import STM, feedback_state, normalization_stats
 
 KIN = default_tip_kinematics(torch.float32)

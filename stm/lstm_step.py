@@ -1,7 +1,7 @@
 """Single steps of an nn.LSTM stack for the auto-conditioned unroll, with a hand-written backward.
 
 Why: a fused nn.LSTM call pays ~100 us of set-up per layer, too much for one or two
-steps, and a cell written in autograd ops records ~30 graph nodes per step. Here one
+steps, and a step written in autograd ops records ~30 graph nodes per step. Here one
 step of the whole stack is ONE autograd node (`StackStep`): the forward runs the gate
 maths without recording, the backward is the textbook LSTM backward. The weight
 gradient is not computed per step: each step leaves its ([x, h], d gates) rows in a
@@ -14,7 +14,7 @@ c' = f c + i g and h' = o tanh(c'); biases b_ih + b_hh. Checked against nn.LSTM 
 plain reference unroll in tests/test_stm_speed_equivalence.py.
 
 The step functions are rank-agnostic: with a leading model axis (x (K, B, D), w (K, I, 4H))
-they step K independent models at once with batched matmuls (stm.packed_cell).
+they step K independent models at once with batched matmuls (stm.packed_lstm_step).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class DeferredWeights(torch.autograd.Function):
             xh, dg = store.xh[k], store.dgates[k]
             store.xh[k], store.dgates[k] = [], []  # a second backward (retain_graph) starts afresh
             gw, gb = grads[2 * k], grads[2 * k + 1]
-            if xh:  # rows (N, .) of one model, or (K, N, .) of a pack of K (stm.packed_cell)
+            if xh:  # rows (N, .) of one model, or (K, N, .) of a pack of K (stm.packed_lstm_step)
                 xh, dg = torch.cat(xh, -2), torch.cat(dg, -2)
                 dw, db = xh.transpose(-2, -1) @ dg, dg.sum(-2, keepdim=dg.dim() == 3)
                 gw = dw if gw is None else gw + dw

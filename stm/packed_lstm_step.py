@@ -1,9 +1,9 @@
-"""The LSTM stack step of stm.cell for a pack of K models with independent weights.
+"""The LSTM stack step of stm.lstm_step for a pack of K models with independent weights.
 
 Per layer the K models' weights are stacked on a leading model axis, (K, I, 4H), and a
 step is one batched matmul per layer (torch.baddbmm) for all K models: the same
 forward with local derivatives, hand-written backward and deferred weight gradient as
-stm.cell (whose step functions take either rank), so a pack of K costs about what one
+stm.lstm_step (whose step functions take either rank), so a pack of K costs about what one
 model costs in per-op overhead, and K times its arithmetic.
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from stm.cell import DeferredGrads, DeferredWeights, StackStep, gate_order
+from stm.lstm_step import DeferredGrads, DeferredWeights, StackStep, gate_order
 
 
 class PackedStackStepper:
@@ -19,7 +19,7 @@ class PackedStackStepper:
     autograd graph). `lstm` is a list per layer of (w_ih (K, 4H, I), w_hh (K, 4H, H),
     b_ih (K, 4H), b_hh (K, 4H)), nn.LSTM's layout with a leading model axis. With in_std
     ((D,) or (K, D)) the steps take centred inputs and fold the division into the first
-    layer's input weights, as stm.cell.StackStepper does."""
+    layer's input weights, as stm.lstm_step.StackStepper does."""
 
     def __init__(self, lstm: list[tuple[torch.Tensor, ...]], in_std: torch.Tensor | None = None):
         H = lstm[0][1].shape[-1]
