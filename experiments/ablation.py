@@ -266,10 +266,9 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
                         bar, total, interactive, held)
 
 
-def success_table(client: Client, experiment_id: str, parent_id: str) -> str:
+def success_markdown(client: Client, experiment_id: str, parent_id: str) -> str:
     """experiments.stats.success_table (the report's success table) over the FINISHED child runs, as Markdown."""
-    from experiments.stats import eval_rows, success_cells
-    from experiments.stats import success_table as table
+    from experiments.stats import eval_rows, success_cells, success_table
     from stm.registry import VARIANTS
 
     evals = eval_rows(child_runs(client, experiment_id, parent_id))
@@ -277,7 +276,7 @@ def success_table(client: Client, experiment_id: str, parent_id: str) -> str:
         return "(no finished cells)"
     seen = list(dict.fromkeys(evals["variant"]))
     order = [v for v in VARIANTS if v in seen] + sorted(set(seen) - set(VARIANTS))
-    return table(success_cells(evals, order)).to_markdown(index=False, disable_numparse=True)
+    return success_table(success_cells(evals, order)).to_markdown(index=False, disable_numparse=True)
 
 
 def command_line() -> str:
@@ -293,7 +292,7 @@ def study_note(outcome: StudyOutcome, client: Client, kind: str) -> str:
              f"{len(outcome.skipped)} skipped (already FINISHED), {len(outcome.failures)} failed, "
              f"{outcome.seconds:.0f} s.", "",
              "Success rate (mean over seeds; rollouts = evaluation episodes pooled over seeds):", "",
-             success_table(client, outcome.experiment_id, outcome.parent_run_id), ""]
+             success_markdown(client, outcome.experiment_id, outcome.parent_run_id), ""]
     if command_line():
         lines += ["Command:", "", f"    {command_line()}", ""]
     name = outcome.study_name
@@ -305,7 +304,7 @@ def summary_text(outcome: StudyOutcome, client: Client) -> str:
     lines = [f"study {outcome.study_name!r}: {len(outcome.results)} cell(s) run, {len(outcome.skipped)} skipped "
              f"(already FINISHED), {len(outcome.failures)} failed, {outcome.seconds:.0f}s",
              "success rate (mean over seeds; rollouts = evaluation episodes pooled over seeds):",
-             success_table(client, outcome.experiment_id, outcome.parent_run_id)]
+             success_markdown(client, outcome.experiment_id, outcome.parent_run_id)]
     if outcome.failures:
         lines.append("FAILED cells:")
         lines += [f"  {r.key} (run {r.run_id}): {r.error}" for r in outcome.failures]

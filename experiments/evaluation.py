@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from envs.figures import save_figure
-from experiments.stats import success_summary
+from experiments.stats import run_success_metrics
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def task_metrics(task, results: list[dict[str, float]], episodes: list) -> dict[
     name = task.name
     out: dict[str, float] = {f"{name}/n_rollouts": float(len(results))}
     if results and "success" in results[0]:
-        for k, v in success_summary([r["success"] for r in results]).items():
+        for k, v in run_success_metrics([r["success"] for r in results]).items():
             out[f"{name}/{k}"] = v
     keys = sorted({k for r in results for k in r} - {"success"})
     for k in keys:  # every task metric's mean, e.g. final_distance_mean

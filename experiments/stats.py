@@ -126,7 +126,7 @@ def group_comparison(a: Sequence[float], b: Sequence[float], confidence: float =
     return out
 
 
-def success_summary(successes: list[float]) -> dict[str, float]:
+def run_success_metrics(successes: list[float]) -> dict[str, float]:
     """success_rate, success_ci_low, success_ci_high, n_rollouts from one run's per-episode 0/1 values."""
     n = len(successes)
     k = int(round(sum(successes)))

@@ -64,7 +64,7 @@ def _ablation_parts(study: Study, folder: Path) -> tuple[list[Table], list[Figur
     success = tables.success_summary(study)
     circle = tables.circle_summary(study)
     train = tables.train_time_summary(study)
-    tabs = [tables.success_table(success, study), tables.circle_table(circle, study),
+    tabs = [tables.paper_success_table(success, study), tables.circle_table(circle, study),
             tables.train_time_table(train, study), tables.generic_metrics_table(study)]
     figs = [_figure("success_bars", lambda: figures.success_bars(success, study, folder)),
             _figure("circles", lambda: trajectories.circles(study, folder)),

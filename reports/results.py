@@ -261,7 +261,7 @@ def markdown(table: Table | pd.DataFrame | str) -> str:
 
 # The ablation-kind placeholders: {{ NAME }} / {{ NAME(study="...") }} and {{ figure("NAME"[, study="..."]) }}.
 ABLATION_TABLES: dict[str, Callable[[Results, Study], Table | pd.DataFrame | str]] = {
-    "success_table": lambda r, s: tables.success_table(r.summary("success", s), s),
+    "success_table": lambda r, s: tables.paper_success_table(r.summary("success", s), s),
     "circle_table": lambda r, s: tables.circle_table(r.summary("circle", s), s),
     "train_time_table": lambda r, s: tables.train_time_table(r.summary("train", s), s),
     "budget_table": lambda r, s: tables.budget_table(s),

@@ -133,7 +133,7 @@ def success_summary(study: Study, tasks: list[str] | None = None) -> pd.DataFram
     return agg
 
 
-def success_table(agg: pd.DataFrame, study: Study) -> Table:
+def paper_success_table(agg: pd.DataFrame, study: Study) -> Table:
     """experiments.stats.success_table (the one success table, also printed at the end of a study) with the
     paper's Table I beside each row, gaps marked and a note per missing seed."""
     marked = agg.assign(mark=["†" if s == "partial" else "" for s in agg["status"]]) if not agg.empty else agg

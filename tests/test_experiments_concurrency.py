@@ -167,10 +167,10 @@ def test_two_identical_studies_at_once_train_each_cell_once_and_report_the_same_
     assert sum("cell(s) run" in out for out, _ in outs) == 2
     parents = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.role = 'parent'")
     assert len(parents) == 1 and parents[0].info.status == "FINISHED"
-    from experiments.ablation import success_table
+    from experiments.ablation import success_markdown
     from experiments.tracking import Client
 
-    table = success_table(Client(f"sqlite:///{tmp_path / 'mlflow.db'}"), parents[0].info.experiment_id,
+    table = success_markdown(Client(f"sqlite:///{tmp_path / 'mlflow.db'}"), parents[0].info.experiment_id,
                           parents[0].info.run_id)
     assert "variant" in table and table in parents[0].data.tags["mlflow.note.content"]  # the run's description
 

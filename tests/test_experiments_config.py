@@ -13,7 +13,7 @@ import pytest
 
 from experiments.cells import build_cells
 from experiments.config import ConfigError, available_profiles, load_profile, parse_override
-from experiments.stats import success_summary, wilson_interval
+from experiments.stats import run_success_metrics, wilson_interval
 from experiments.tracking import MetricBuffer, flatten, last_logged_step, tracking_uri, with_retries
 
 REPO = Path(__file__).resolve().parents[1]
@@ -118,7 +118,7 @@ def test_wilson_matches_the_closed_form():
         half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
         low, high = wilson_interval(k, n)
         assert low == pytest.approx(centre - half, abs=1e-9) and high == pytest.approx(centre + half, abs=1e-9)
-    s = success_summary([1.0, 0.0, 1.0, 1.0])
+    s = run_success_metrics([1.0, 0.0, 1.0, 1.0])
     assert s["success_rate"] == 0.75 and s["n_rollouts"] == 4 and s["success_ci_low"] < 0.75 < s["success_ci_high"]
     assert all(math.isnan(v) for v in wilson_interval(0, 0))
 

@@ -450,10 +450,10 @@ def test_success_cell_and_table_say_what_n_counts():
 @pytest.mark.slow
 def test_study_summary_prints_the_report_success_table(store):
     """experiments' end-of-study summary and the report share one success table (experiments.stats)."""
-    from experiments.ablation import success_table as summary_table
+    from experiments.ablation import success_markdown
     client = store["client"]
     exp = client.get_experiment_by_name("ablation").experiment_id
-    text = summary_table(client, exp, store["parent"])
+    text = success_markdown(client, exp, store["parent"])
     header = text.splitlines()[0]
     for column in ("per seed", "Wilson 95% (rollouts independent)", "seed-level 95%", "rollouts", "seeds"):
         assert column in header
