@@ -8,7 +8,7 @@ task, since the paper sizes the reacher and pick-and-place models differently), 
 protocol and the sweep settings. `StudyConfig.task_configs` holds each training task's resolved
 (ModelConfig, TrainConfig, dataset options). Field types and ranges are pydantic's
 (stm.config.STRICT); every error is a `ConfigError` whose message is one line naming the field
-and the allowed values (experiments.validation). A profile's [smoothing] and [idm] sections
+and the allowed values (experiments.config_errors). A profile's [smoothing] and [idm] sections
 belong to experiments.postprocess.
 """
 
@@ -27,6 +27,7 @@ from typing import Annotated, Any
 from pydantic import BeforeValidator, field_validator
 from pydantic.dataclasses import dataclass
 
+from experiments.config_errors import ConfigError, as_tuple, tuples, validated
 from experiments.sections import (  # noqa: F401 - re-exported: the config's names live here
     OBJECTIVES,
     SAMPLERS,
@@ -39,7 +40,6 @@ from experiments.sections import (  # noqa: F401 - re-exported: the config's nam
     known_variants,
     training_tasks,
 )
-from experiments.validation import ConfigError, as_tuple, tuples, validated
 from stm.config import STRICT, ModelConfig, NonNegativeInt, PositiveInt, TrainConfig
 
 log = logging.getLogger(__name__)
@@ -324,7 +324,7 @@ def _data_options(name: str, task: str, values: dict[str, Any]) -> dict[str, Any
     """Dataset options of a training task: keyword arguments of its constructor (e.g. n_demos),
     typed by its signature, then checked by building the task (it validates its own values)."""
     from envs.tasks import get_task
-    from experiments.validation import signature_model
+    from experiments.config_errors import signature_model
 
     typed = validated(signature_model(task), values, name)
     out = {k: getattr(typed, k) for k in values}

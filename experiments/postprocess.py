@@ -37,7 +37,7 @@ from pydantic import Field
 from pydantic.dataclasses import dataclass
 
 from experiments.config import available_profiles, config_hash, parse_override, read_profile, set_path
-from experiments.validation import ConfigError, validated
+from experiments.config_errors import ConfigError, validated
 from stm.config import STRICT, NonNegativeFloat, PositiveFloat, PositiveInt
 
 log = logging.getLogger(__name__)

@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 
-from experiments.validation import ConfigError
+from experiments.config_errors import ConfigError
 
 # seconds an interrupted worker gets to checkpoint its cells and mark its runs before it exits anyway: a
 # pick-and-place pack stores a checkpoint of several MB per seed, on a store other workers write to as well

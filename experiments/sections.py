@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal, get_args
 from pydantic import BeforeValidator, Field, ValidationInfo, field_validator
 from pydantic.dataclasses import dataclass
 
-from experiments.validation import as_tuple
+from experiments.config_errors import as_tuple
 from stm.config import STRICT, NonNegativeInt, PositiveInt
 
 Sampler = Literal["tpe", "grid", "random"]
