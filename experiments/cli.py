@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as e:
             print(_one_line(f"error: {e}"), file=sys.stderr)
             return 2
-    from experiments.stores import StoreUnavailable, wait_for_stores
+    from experiments.store_check import StoreUnavailable, wait_for_stores
     from experiments.tracking import tracking_uri
 
     try:  # a locked store or a server that is down: bounded retries, then one line, nothing written

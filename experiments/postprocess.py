@@ -307,7 +307,7 @@ def main(args: argparse.Namespace) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from experiments.stores import StoreUnavailable, wait_for_stores
+    from experiments.store_check import StoreUnavailable, wait_for_stores
     from experiments.tracking import report_index, tracking_uri
 
     try:  # the ablation's probe: a locked store or a server that is down is one line, exit 3

@@ -23,7 +23,7 @@ from mlflow.entities import Metric
 
 from experiments.claims import is_live
 from experiments.config import SweepConfig
-from experiments.stores import redact
+from experiments.store_check import redact
 from experiments.tracking import Client, schema_lock, set_tags, sqlite_path, store_dir
 
 log = logging.getLogger(__name__)

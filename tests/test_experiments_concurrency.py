@@ -88,7 +88,7 @@ def test_processes_creating_a_fresh_store_at_once_do_not_race_on_its_schema(tmp_
 
 
 def test_missing_folder_and_corrupt_database_fail_at_once_without_a_hint_to_wait(tmp_path):
-    from experiments.stores import StoreUnusable, wait_for_stores
+    from experiments.store_check import StoreUnusable, wait_for_stores
 
     with pytest.raises(StoreUnusable) as missing:
         wait_for_stores(f"sqlite:///{tmp_path / 'nope' / 'mlflow.db'}", attempts=5, delay=30)  # no retry: no wait
@@ -109,7 +109,7 @@ def test_one_line_errors_stay_one_line_despite_pybullets_banner(tmp_path):
 
 
 def test_redacted_urls_hide_passwords():
-    from experiments.stores import redact
+    from experiments.store_check import redact
 
     assert redact("postgresql://acrmdn:s3cret@db:5432/optuna") == "postgresql://acrmdn:***@db:5432/optuna"
     assert redact("http://127.0.0.1:5000") == "http://127.0.0.1:5000"

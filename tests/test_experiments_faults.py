@@ -225,7 +225,7 @@ def test_locked_sqlite_store_gives_one_clear_error_and_stays_untouched(tmp_path)
 
 @pytest.mark.slow
 def test_store_locked_for_a_moment_is_waited_for(tmp_path):
-    from experiments.stores import wait_for_stores
+    from experiments.store_check import wait_for_stores
 
     _mlflow_store(tmp_path)
     lock = sqlite3.connect(tmp_path / "mlflow.db", isolation_level=None, check_same_thread=False)
