@@ -7,7 +7,7 @@ from pathlib import Path
 
 import matplotlib
 
-from envs.figures import save_figure
+from envs.figure_files import save_figure
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.figures import save_figure
+from envs.figure_files import save_figure
 from experiments.stats import run_success_metrics
 
 log = logging.getLogger(__name__)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from envs.figures import save_figure
+from envs.figure_files import save_figure
 
 log = logging.getLogger(__name__)
 

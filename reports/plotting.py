@@ -1,5 +1,5 @@
 """Figure plumbing shared by the report's figure modules: matplotlib set-up (files only), the result of a
-figure (paths or the gap that replaced it), colours per variant, saving as PNG + PDF (envs.figures.save_figure),
+figure (paths or the gap that replaced it), colours per variant, saving as PNG + PDF (envs.figure_files.save_figure),
 gap panels."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import matplotlib
 matplotlib.use("Agg")  # files only; never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
-from envs.figures import save_figure  # noqa: E402
+from envs.figure_files import save_figure  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ def panel_grid(n: int, panel_w: float, panel_h: float, max_cols: int = 3):
 
 
 def save(fig, folder: Path, name: str, title: str, partial: list[str] | None = None) -> FigureResult:
-    """<folder>/<name>.png + .pdf through envs.figures.save_figure, at this module's rcParams dpi."""
+    """<folder>/<name>.png + .pdf through envs.figure_files.save_figure, at this module's rcParams dpi."""
     paths = save_figure(fig, folder / name, dpi=None)
     return FigureResult(name, title, [Path(p) for p in paths], partial=partial or [])
 

@@ -28,7 +28,7 @@ import torch
 from pydantic import Field, ValidationInfo, field_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
-from envs.figures import save_figure
+from envs.figure_files import save_figure
 from envs.kinematics import tip_position_np
 from envs.sim import Scene
 from envs.tasks.reacher import SUCCESS_RADIUS  # the reacher's success criterion

@@ -30,7 +30,7 @@ import numpy as np
 import scipy.linalg
 import torch
 
-from envs.figures import save_figure
+from envs.figure_files import save_figure
 from envs.kinematics import SawyerKinematics, default_kinematics
 
 log = logging.getLogger(__name__)
