@@ -14,7 +14,7 @@ import pandas as pd
 
 from reports import paper
 from reports.plotting import FigureResult, gap, mark_gap, plt, save, variant_color
-from reports.stats import curve_band
+from reports.seed_aggregates import curve_band
 from reports.store import Study
 
 

@@ -13,7 +13,7 @@ import pandas as pd
 
 from experiments import stats as shared_stats
 from reports import paper
-from reports.stats import aggregate_success, mean_over_seeds
+from reports.seed_aggregates import aggregate_success, mean_over_seeds
 from reports.store import Study
 
 GAP = "gap"

@@ -14,9 +14,9 @@ from mlflow.entities import Metric, Param
 from oracles import drawn_colours, is_pdf
 from scipy.stats import binomtest
 
+from experiments.stats import wilson_interval
 from reports.__main__ import main
 from reports.build import build_report
-from reports.stats import wilson_interval
 from reports.store import Store
 from reports.tables import success_summary
 
@@ -301,7 +301,7 @@ def test_bench_quick_sized_report(tmp_path, benchmark):
 def test_curve_band_over_seeds_with_missing_steps():
     import pandas as pd
 
-    from reports.stats import curve_band
+    from reports.seed_aggregates import curve_band
     a = pd.DataFrame({"step": [0, 10, 20], "value": [3.0, 2.0, 1.0]})
     b = pd.DataFrame({"step": [0, 10], "value": [5.0, 4.0]})  # this seed stopped early
     band = curve_band([a, b]).set_index("step")

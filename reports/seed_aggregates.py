@@ -1,4 +1,4 @@
-"""Statistics of the report: success cells over seeds with gaps marked (the intervals and comparisons themselves
+"""The report's aggregates over seeds: success cells with gaps marked (the intervals and comparisons themselves
 live in experiments.stats, shared with the study summary), means over seeds, curve bands."""
 
 from __future__ import annotations
