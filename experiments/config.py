@@ -28,7 +28,7 @@ from pydantic import BeforeValidator, field_validator
 from pydantic.dataclasses import dataclass
 
 from experiments.config_errors import ConfigError, as_tuple, tuples, validated
-from experiments.sections import (  # noqa: F401 - re-exported: the config's names live here
+from experiments.eval_sweep_config import (  # noqa: F401 - re-exported: the config's names live here
     OBJECTIVES,
     SAMPLERS,
     SWEEP_PARAMS,

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from experiments.config import StudyConfig, SweepConfig
-from experiments.sections import INT_RANGES
+from experiments.eval_sweep_config import INT_RANGES
 from experiments.sweep_storage import worker_id
 from experiments.tracking import (
     PARENT_TAG,

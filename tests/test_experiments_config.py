@@ -318,7 +318,7 @@ def test_a_variant_that_contradicts_the_schedule_fails_with_the_config():
 def test_eval_feedback_takes_every_rollout_feedback_and_train_feedback_only_the_trainable():
     from typing import get_args
 
-    from experiments.sections import RolloutFeedback
+    from experiments.eval_sweep_config import RolloutFeedback
     from stm.rollout import FEEDBACKS
 
     assert set(get_args(RolloutFeedback)) == set(FEEDBACKS)
