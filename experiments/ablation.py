@@ -268,7 +268,7 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
 
 def success_markdown(client: Client, experiment_id: str, parent_id: str) -> str:
     """experiments.stats.success_table (the report's success table) over the FINISHED child runs, as Markdown."""
-    from experiments.stats import eval_rows, success_cells, success_table
+    from experiments.stats import eval_rows, success_rows, success_table
     from stm.registry import VARIANTS
 
     evals = eval_rows(child_runs(client, experiment_id, parent_id))
@@ -276,7 +276,7 @@ def success_markdown(client: Client, experiment_id: str, parent_id: str) -> str:
         return "(no finished cells)"
     seen = list(dict.fromkeys(evals["variant"]))
     order = [v for v in VARIANTS if v in seen] + sorted(set(seen) - set(VARIANTS))
-    return success_table(success_cells(evals, order)).to_markdown(index=False, disable_numparse=True)
+    return success_table(success_rows(evals, order)).to_markdown(index=False, disable_numparse=True)
 
 
 def command_line() -> str:

@@ -135,8 +135,8 @@ def run_success_metrics(successes: list[float]) -> dict[str, float]:
             "n_rollouts": float(n)}
 
 
-def success_cell(per_seed: Mapping[int, tuple[float, float]]) -> dict:
-    """One (variant, task) cell from each seed's (success rate, rollouts): the mean over seeds, the seeds'
+def success_over_seeds(per_seed: Mapping[int, tuple[float, float]]) -> dict:
+    """One (variant, task) over its seeds, from each seed's (success rate, rollouts): the mean over seeds, the seeds'
     rates, the pooled successes/rollouts with their Wilson interval (ci_*) and the seed-level interval
     (seed_*; seed_interval)."""
     logged = {int(s): (float(r), int(n)) for s, (r, n) in sorted(per_seed.items())
@@ -154,10 +154,10 @@ def success_cell(per_seed: Mapping[int, tuple[float, float]]) -> dict:
             "ci_low": low, "ci_high": high, "seed_low": slow, "seed_high": shigh}
 
 
-def success_cells(evals: pd.DataFrame, variants: Sequence[str] | None = None,
+def success_rows(evals: pd.DataFrame, variants: Sequence[str] | None = None,
                   tasks: Sequence[str] | None = None) -> pd.DataFrame:
     """One row per (variant, eval_task) from a long frame of finished runs (columns variant, eval_task, seed,
-    success_rate, n_rollouts), in the given orders (else as first seen); see success_cell for the columns."""
+    success_rate, n_rollouts), in the given orders (else as first seen); see success_over_seeds for the columns."""
     need = {"variant", "eval_task", "seed", "success_rate", "n_rollouts"}
     if evals.empty or not need <= set(evals.columns):
         return pd.DataFrame(columns=["variant", "eval_task", "mean", "std", "seeds", "seed_rates", "successes", "n",
@@ -172,12 +172,12 @@ def success_cells(evals: pd.DataFrame, variants: Sequence[str] | None = None,
             if len(got):
                 per_seed = {int(s): (r, n) for s, r, n in zip(got["seed"], got["success_rate"], got["n_rollouts"],
                                                               strict=True)}
-                rows.append({"variant": variant, "eval_task": task, **success_cell(per_seed)})
+                rows.append({"variant": variant, "eval_task": task, **success_over_seeds(per_seed)})
     return pd.DataFrame(rows)
 
 
 def eval_rows(runs: Iterable) -> pd.DataFrame:
-    """The long frame success_cells reads, from MLflow runs (FINISHED ones only): metrics <task>/success_rate and
+    """The long frame success_rows reads, from MLflow runs (FINISHED ones only): metrics <task>/success_rate and
     <task>/n_rollouts, tags variant and seed."""
     rows = []
     for run in runs:
@@ -213,12 +213,12 @@ def p_value(p: float) -> str:
     return "–" if math.isnan(p) else f"{p:.3f}" if p < 0.01 else f"{p:.2f}"
 
 
-def success_table(cells: pd.DataFrame, variant_label=str, task_label=str) -> pd.DataFrame:
+def success_table(agg: pd.DataFrame, variant_label=str, task_label=str) -> pd.DataFrame:
     """THE success table, as strings: one row per (task, variant) with the mean success over seeds, each seed's
-    rate, the seed-level and the pooled Wilson interval, and what n counts (rollouts, seeds). Rows of `cells`
+    rate, the seed-level and the pooled Wilson interval, and what n counts (rollouts, seeds). Rows of `agg`
     with no seed (a gap) keep their row with dashes; a `mark` column (e.g. '†') is appended to the rate."""
     rows = []
-    for r in cells.to_dict("records"):
+    for r in agg.to_dict("records"):
         rates = r.get("seed_rates") or {}
         seeds = int(r.get("seeds") or 0)
         rows.append({

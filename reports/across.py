@@ -1,5 +1,5 @@
 """The placeholders over several studies of one training task ({{ data_scaling(...) }}, {{ lever(...) }},
-{{ goal_switch(...) }}, {{ stacking(...) }}, {{ comparisons(...) }}): how each builds its cells, table and
+{{ goal_switch(...) }}, {{ stacking(...) }}, {{ comparisons(...) }}): how each builds its rows, table and
 figure, and the studies they name, a milestones study's stage included as NAME@ITERATION."""
 
 from __future__ import annotations
@@ -20,30 +20,30 @@ from reports.template import MULTI_STUDY
 
 @dataclass(frozen=True)
 class AcrossStudies:
-    """How a placeholder over several studies of one training task builds its cells, table and figure."""
+    """How a placeholder over several studies of one training task builds its rows, table and figure."""
 
     name: str  # the figure's name
-    cells: Callable[[list[Study], str], pd.DataFrame]
+    rows: Callable[[list[Study], str], pd.DataFrame]
     table: Callable[[pd.DataFrame], pd.DataFrame]
     figure: Callable[[pd.DataFrame, str, Path], FigureResult] | None  # None: a table alone
-    error: type[Exception]  # what cells raises when the studies cannot be put side by side
+    error: type[Exception]  # what rows raises when the studies cannot be put side by side
     note: Callable[[str], str]  # the table's columns explained, for a task
     out_name: Callable[[str, list[Study]], str]  # the figure's file name
 
 
 ACROSS = {  # template.MULTI_STUDY's placeholders
     "data_scaling": AcrossStudies(
-        data_scaling.NAME, data_scaling.scaling_cells, data_scaling.scaling_table, data_scaling.scaling_figure,
+        data_scaling.NAME, data_scaling.scaling_rows, data_scaling.scaling_table, data_scaling.scaling_figure,
         data_scaling.DataScalingError,
         lambda task: f"demos: the demonstrations the {task} model trained on; {SUCCESS_NOTE}",
         lambda task, studies: f"{file_safe(task)}_data_scaling"),
     "lever": AcrossStudies(
-        levers.NAME, levers.lever_cells, levers.lever_table, levers.lever_figure, levers.LeverError,
+        levers.NAME, levers.lever_rows, levers.lever_table, levers.lever_figure, levers.LeverError,
         lambda task: (f"setting: what sets the study's {task} runs of that variant apart from the other studies "
                       f"named here (their params; one not logged is at its default); {SUCCESS_NOTE}"),
         lambda task, studies: f"{file_safe(task)}_lever_{file_safe(studies[-1].name)}"),
     "goal_switch": AcrossStudies(
-        goal_switch.NAME, goal_switch.switch_cells, goal_switch.switch_table, goal_switch.switch_figure,
+        goal_switch.NAME, goal_switch.switch_rows, goal_switch.switch_table, goal_switch.switch_figure,
         levers.LeverError,
         lambda task: (f"the {goal_switch.EVAL_TASK} episodes of the {task} models, pooled over seeds; setting: as "
                       f"in the lever table; never set off (under {goal_switch.SET_OFF:.0%} of the way to the new "
@@ -53,7 +53,7 @@ ACROSS = {  # template.MULTI_STUDY's placeholders
                       f"never get there."),
         lambda task, studies: f"{file_safe(task)}_goal_switch_{file_safe(studies[-1].name)}"),
     "stacking": AcrossStudies(
-        stacking.NAME, stacking.stacking_cells, stacking.stacking_table, stacking.stacking_figure, levers.LeverError,
+        stacking.NAME, stacking.stacking_rows, stacking.stacking_table, stacking.stacking_figure, levers.LeverError,
         lambda task: (f"the {stacking.EVAL_TASK} episodes of the {task} models, pooled over seeds; setting: as in "
                       f"the lever table; came for block k: the tool tip within {stacking.REACH * 100:g} cm of the "
                       f"point where block k is grasped during its sub-episode (each next block starts where the "
@@ -61,7 +61,7 @@ ACROSS = {  # template.MULTI_STUDY's placeholders
                       f"closest approach: the tip's, to each block's grasp point."),
         lambda task, studies: f"{file_safe(task)}_stacking_{file_safe(studies[-1].name)}"),
     "comparisons": AcrossStudies(
-        comparisons.TITLE, comparisons.paper_cells, comparisons.paper_table, None, comparisons.ComparisonError,
+        comparisons.TITLE, comparisons.paper_rows, comparisons.paper_table, None, comparisons.ComparisonError,
         lambda task: comparisons.NOTE, lambda task, studies: ""),
 }
 assert set(ACROSS) == set(MULTI_STUDY), "every multi-study placeholder of the template language is built here"

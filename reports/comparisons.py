@@ -170,7 +170,7 @@ def _finished(study: Study, task: str) -> pd.DataFrame:
     return evals[(evals["task"] == task) & (evals["status"] == "FINISHED") & evals["success_rate"].notna()]
 
 
-def paper_cells(studies: list[Study], task: str) -> pd.DataFrame:
+def paper_rows(studies: list[Study], task: str) -> pd.DataFrame:
     """{{ comparisons(...) }}: for every task TASK's models were evaluated on, the PAPER_PAIRS within each named
     study, then each later study against the first for every variant both trained; one row per comparison, the
     columns of the table (COLUMNS). Studies that share no variant (e.g. the auto-conditioned models of one and
@@ -201,6 +201,6 @@ def paper_cells(studies: list[Study], task: str) -> pd.DataFrame:
     return pd.DataFrame(out, columns=COLUMNS)
 
 
-def paper_table(cells: pd.DataFrame) -> pd.DataFrame:
-    """paper_cells are already the table's rows."""
-    return cells
+def paper_table(rows: pd.DataFrame) -> pd.DataFrame:
+    """paper_rows are already the table's rows."""
+    return rows

@@ -13,7 +13,7 @@ import pandas as pd
 
 from experiments.stats import success_table
 from reports import paper
-from reports.levers import task_cells
+from reports.levers import task_success_rows
 from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
 from reports.store import Study
 
@@ -40,51 +40,51 @@ def demos_of(study: Study, task: str) -> int | None:
     return int(task_class(task)().n_demos)
 
 
-def scaling_cells(studies: list[Study], task: str) -> pd.DataFrame:
-    """One row per (number of demonstrations, variant, evaluated task): success_cells' columns plus `n_demos`
+def scaling_rows(studies: list[Study], task: str) -> pd.DataFrame:
+    """One row per (number of demonstrations, variant, evaluated task): success_rows' columns plus `n_demos`
     and `study`; studies without finished runs of `task` are left out."""
     frames, seen = [], {}
     for study in studies:
         n = demos_of(study, task)
         if n is None:
             continue
-        cells = task_cells(study, task)
-        for variant in dict.fromkeys(cells["variant"]):  # two studies may share a count if not a variant
+        agg = task_success_rows(study, task)
+        for variant in dict.fromkeys(agg["variant"]):  # two studies may share a count if not a variant
             if (n, variant) in seen:
                 raise DataScalingError(f"studies {seen[n, variant]!r} and {study.name!r} both trained {task} on {n} "
                                        f"demonstrations (variant {variant})")
             seen[n, variant] = study.name
-        frames.append(cells.assign(n_demos=n, study=study.name))
-    cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    if cells.empty:
-        return cells
+        frames.append(agg.assign(n_demos=n, study=study.name))
+    agg = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if agg.empty:
+        return agg
     order = {v: i for i, v in enumerate(dict.fromkeys(v for s in studies for v in s.variants))}
-    cells = cells.assign(_v=cells["variant"].map(order))
-    return cells.sort_values(["eval_task", "_v", "n_demos"], kind="stable").drop(columns="_v").reset_index(drop=True)
+    agg = agg.assign(_v=agg["variant"].map(order))
+    return agg.sort_values(["eval_task", "_v", "n_demos"], kind="stable").drop(columns="_v").reset_index(drop=True)
 
 
-def scaling_table(cells: pd.DataFrame) -> pd.DataFrame:
+def scaling_table(agg: pd.DataFrame) -> pd.DataFrame:
     """THE success table (experiments.stats.success_table: per seed, seed-level and Wilson intervals) with the
     number of demonstrations after the variant: one row per (evaluated task, variant, demonstrations)."""
-    if cells.empty:
+    if agg.empty:
         return pd.DataFrame()
-    table = success_table(cells, paper.variant_label, paper.task_label)
-    table.insert(2, "demos", [str(n) for n in cells["n_demos"]])
+    table = success_table(agg, paper.variant_label, paper.task_label)
+    table.insert(2, "demos", [str(n) for n in agg["n_demos"]])
     return table
 
 
-def scaling_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
+def scaling_figure(agg: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     """One panel per evaluated task: success vs demonstrations (log axis), one line per variant, the seed-level
     95 % interval as a band."""
-    if cells.empty:
+    if agg.empty:
         return gap(NAME, TITLE, f"no finished runs of {task} in the named studies")
-    tasks = list(dict.fromkeys(cells["eval_task"]))
-    variants = list(dict.fromkeys(cells["variant"]))
-    counts = sorted(cells["n_demos"].unique())
+    tasks = list(dict.fromkeys(agg["eval_task"]))
+    variants = list(dict.fromkeys(agg["variant"]))
+    counts = sorted(agg["n_demos"].unique())
     fig, axes = panel_grid(len(tasks), 4.2, 3.2)
     for ax, eval_task in zip(axes.flat, tasks, strict=False):
         for variant in variants:
-            got = cells[(cells["eval_task"] == eval_task) & (cells["variant"] == variant)]
+            got = agg[(agg["eval_task"] == eval_task) & (agg["variant"] == variant)]
             if got.empty:
                 continue
             color = variant_color(variant, variants)

@@ -30,15 +30,15 @@ def success_bars(agg: pd.DataFrame, study: Study, folder: Path) -> FigureResult:
     x = np.arange(len(tasks))
     partial = []
     for j, v in enumerate(variants):
-        cells = agg[agg["variant"] == v].set_index("eval_task").loc[tasks]
+        of_variant = agg[agg["variant"] == v].set_index("eval_task").loc[tasks]
         pos = x - 0.4 + width * (j + 0.5)
-        mean = cells["mean"].to_numpy(dtype=float)
-        lo = np.clip(mean - cells["ci_low"].to_numpy(dtype=float), 0, None)
-        hi = np.clip(cells["ci_high"].to_numpy(dtype=float) - mean, 0, None)
+        mean = of_variant["mean"].to_numpy(dtype=float)
+        lo = np.clip(mean - of_variant["ci_low"].to_numpy(dtype=float), 0, None)
+        hi = np.clip(of_variant["ci_high"].to_numpy(dtype=float) - mean, 0, None)
         ax.bar(pos, np.nan_to_num(mean), width, yerr=np.nan_to_num(np.vstack([lo, hi])), capsize=3,
                color=variant_color(v, variants), label=f"{paper.variant_label(v)} (ours)")
         for p, t in zip(pos, tasks, strict=True):
-            status = cells.loc[t, "status"]
+            status = of_variant.loc[t, "status"]
             if status == "gap":
                 ax.bar(p, 1.0, width, fill=False, hatch="//", edgecolor="#c00", linewidth=0)
                 ax.text(p, 0.5, "gap", rotation=90, ha="center", va="center", color="#c00", fontsize=8)

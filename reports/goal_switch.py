@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from reports import paper
-from reports.levers import in_variant_order, rollout_cells
+from reports.levers import in_variant_order, rollout_rows
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
 from reports.store import Study, order_variants
 
@@ -47,17 +47,17 @@ def episode_facts(arrays: dict[str, np.ndarray]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def switch_cells(studies: list[Study], task: str) -> pd.DataFrame:
-    """One row per (study, variant) with changing-goal rollouts of `task`'s models (reports.levers.rollout_cells)."""
-    return rollout_cells(studies, task, EVAL_TASK, episode_facts)
+def switch_rows(studies: list[Study], task: str) -> pd.DataFrame:
+    """One row per (study, variant) with changing-goal rollouts of `task`'s models (reports.levers.rollout_rows)."""
+    return rollout_rows(studies, task, EVAL_TASK, episode_facts)
 
 
-def switch_table(cells: pd.DataFrame) -> pd.DataFrame:
+def switch_table(agg: pd.DataFrame) -> pd.DataFrame:
     """The failures' anatomy, one row per (variant, study), as strings."""
-    if cells.empty:
+    if agg.empty:
         return pd.DataFrame()
     rows = []
-    for r in in_variant_order(cells).itertuples():
+    for r in in_variant_order(agg).itertuples():
         f = r.facts
         failed = f[f["success"] < 1]
         rows.append({
@@ -87,21 +87,21 @@ def min_jerk_remaining(steps: int, length: int) -> np.ndarray:
     return 1.0 - (10 * tau**3 - 15 * tau**4 + 6 * tau**5)
 
 
-def switch_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
+def switch_figure(agg: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     """One panel per study: the median remaining fraction of the distance to the new goal against the steps
     after the switch, a line per variant, and minimum-jerk reaches of the task's shortest and longest expert
     reach as the band an imitation of the expert would lie in."""
-    if cells.empty:
+    if agg.empty:
         return gap(NAME, TITLE, f"no changing-goal rollouts of {task} models in the named studies")
     from envs.tasks import task_class  # here: it loads torch and pybullet
 
     expert = task_class(task)()
     demo_steps = (expert.min_steps, expert.max_steps)
-    studies = list(dict.fromkeys(cells["study"]))
-    variants = order_variants(cells["variant"].unique())
+    studies = list(dict.fromkeys(agg["study"]))
+    variants = order_variants(agg["variant"].unique())
     fig, axes = panel_grid(len(studies), 4.2, 3.4)
     for ax, study in zip(axes.flat, studies, strict=False):
-        mine = cells[cells["study"] == study]
+        mine = agg[agg["study"] == study]
         length = max(len(x) for f in mine["facts"] for x in f["remaining"])
         ref = [min_jerk_remaining(n, length) for n in demo_steps]
         ax.fill_between(np.arange(length), ref[0], ref[1], color="0.85",

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from experiments.stats import success_cells, success_table
+from experiments.stats import success_rows, success_table
 from experiments.tracking import MILESTONE_ITERATION
 from reports import paper
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
@@ -33,17 +33,17 @@ class LeverError(ValueError):
     """The named studies cannot be told apart, or a study's runs of the task disagree on a setting."""
 
 
-def task_cells(study: Study, task: str) -> pd.DataFrame:
-    """success_cells of the study's finished runs of training task `task` (every task they were evaluated on)."""
+def task_success_rows(study: Study, task: str) -> pd.DataFrame:
+    """success_rows of the study's finished runs of training task `task` (every task they were evaluated on)."""
     evals = study.eval_metrics()
     evals = evals[(evals["status"] == "FINISHED") & (evals["task"] == task)]
-    return success_cells(evals, study.variants)
+    return success_rows(evals, study.variants)
 
 
 def study_settings(study: Study, task: str, variant: str) -> dict[str, str] | None:
     """The settings (param name without "params." -> value) of the study's finished runs of `task` with
     `variant`; None without such runs. A setting two of those runs disagree on is an error (they are not one
-    cell), and so are runs at several iterations (a milestones study's checkpoints along training: name one
+    cell group), and so are runs at several iterations (a milestones study's checkpoints along training: name one
     stage as STUDY@ITERATION). A milestone's train.iters reads as its checkpoint's iteration: what it trained."""
     runs = study.ok[(study.ok["task"] == task) & (study.ok["variant"] == variant)]
     if runs.empty:
@@ -114,7 +114,7 @@ def setting_labels(studies: list[Study], task: str) -> dict[tuple[str, str], str
     return labels
 
 
-def rollout_cells(studies: list[Study], task: str, eval_task: str,
+def rollout_rows(studies: list[Study], task: str, eval_task: str,
                   facts_of: Callable[[dict[str, np.ndarray]], pd.DataFrame]) -> pd.DataFrame:
     """One row per (study, variant) with `eval_task` rollouts of `task`'s models: its setting (setting_labels),
     the per-episode facts that `facts_of` reads from each finished seed's rollouts artifact, pooled over the
@@ -133,37 +133,37 @@ def rollout_cells(studies: list[Study], task: str, eval_task: str,
     return pd.DataFrame(rows)
 
 
-def in_variant_order(cells: pd.DataFrame) -> pd.DataFrame:
-    """`cells` sorted by variant in the paper's order (reports.store.order_variants), stable within one."""
-    rank = {v: i for i, v in enumerate(order_variants(cells["variant"].unique()))}
-    return cells.sort_values("variant", key=lambda v: v.map(rank), kind="stable")
+def in_variant_order(agg: pd.DataFrame) -> pd.DataFrame:
+    """`agg` sorted by variant in the paper's order (reports.store.order_variants), stable within one."""
+    rank = {v: i for i, v in enumerate(order_variants(agg["variant"].unique()))}
+    return agg.sort_values("variant", key=lambda v: v.map(rank), kind="stable")
 
 
-def lever_cells(studies: list[Study], task: str) -> pd.DataFrame:
-    """One row per (evaluated task, variant, study), in the studies' order within each variant: success_cells'
+def lever_rows(studies: list[Study], task: str) -> pd.DataFrame:
+    """One row per (evaluated task, variant, study), in the studies' order within each variant: success_rows'
     columns plus `setting` and `study`; studies without finished runs of `task` are left out."""
     labels = setting_labels(studies, task)
     frames = []
     for study in studies:
-        cells = task_cells(study, task)
-        if not cells.empty:
-            frames.append(cells.assign(setting=[labels[(study.name, v)] for v in cells["variant"]], study=study.name))
-    cells = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    if cells.empty:
-        return cells
+        agg = task_success_rows(study, task)
+        if not agg.empty:
+            frames.append(agg.assign(setting=[labels[(study.name, v)] for v in agg["variant"]], study=study.name))
+    agg = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if agg.empty:
+        return agg
     variants = {v: i for i, v in enumerate(dict.fromkeys(v for s in studies for v in s.variants))}
     order = {s.name: i for i, s in enumerate(studies)}
-    cells = cells.assign(_v=cells["variant"].map(variants), _s=cells["study"].map(order))
-    cells = cells.sort_values(["eval_task", "_v", "_s"], kind="stable")
-    return cells.drop(columns=["_v", "_s"]).reset_index(drop=True)
+    agg = agg.assign(_v=agg["variant"].map(variants), _s=agg["study"].map(order))
+    agg = agg.sort_values(["eval_task", "_v", "_s"], kind="stable")
+    return agg.drop(columns=["_v", "_s"]).reset_index(drop=True)
 
 
-def lever_table(cells: pd.DataFrame) -> pd.DataFrame:
+def lever_table(agg: pd.DataFrame) -> pd.DataFrame:
     """THE success table (per seed, seed-level and Wilson intervals) with the setting after the variant."""
-    if cells.empty:
+    if agg.empty:
         return pd.DataFrame()
-    table = success_table(cells, paper.variant_label, paper.task_label)
-    table.insert(2, "setting", list(cells["setting"]))
+    table = success_table(agg, paper.variant_label, paper.task_label)
+    table.insert(2, "setting", list(agg["setting"]))
     return table
 
 
@@ -172,19 +172,19 @@ def _tick(setting: str) -> str:
     return "\n".join(part.replace("=", "=\n") if len(part) > 20 else part for part in setting.split(", "))
 
 
-def lever_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
+def lever_figure(agg: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     """One panel per evaluated task: a group of bars per setting, one bar per variant (mean over seeds), the
     seed-level 95 % interval as an error bar."""
-    if cells.empty:
+    if agg.empty:
         return gap(NAME, TITLE, f"no finished runs of {task} in the named studies")
-    tasks = list(dict.fromkeys(cells["eval_task"]))
-    variants = list(dict.fromkeys(cells["variant"]))
-    settings = list(dict.fromkeys(cells["setting"]))
+    tasks = list(dict.fromkeys(agg["eval_task"]))
+    variants = list(dict.fromkeys(agg["variant"]))
+    settings = list(dict.fromkeys(agg["setting"]))
     width = 0.8 / len(variants)
     fig, axes = panel_grid(len(tasks), max(4.2, 2.0 * len(settings)), 3.6)
     for ax, eval_task in zip(axes.flat, tasks, strict=False):
         for j, variant in enumerate(variants):
-            got = cells[(cells["eval_task"] == eval_task) & (cells["variant"] == variant)]
+            got = agg[(agg["eval_task"] == eval_task) & (agg["variant"] == variant)]
             x = np.array([settings.index(s) for s in got["setting"]]) + (j - (len(variants) - 1) / 2) * width
             mean = 100 * got["mean"].to_numpy(float)
             err = np.clip([mean - 100 * got["seed_low"].to_numpy(float), 100 * got["seed_high"].to_numpy(float) - mean],

@@ -1,6 +1,6 @@
 """Success vs training iterations from a milestones study (experiments/milestones.py: the checkpoints an
 ablation kept, evaluated like its final models): one panel per evaluated task, one line per variant, the mean
-over seeds with its seed-level 95 % interval (experiments.stats.success_cells) as a band."""
+over seeds with its seed-level 95 % interval (experiments.stats.success_rows) as a band."""
 
 from __future__ import annotations
 
@@ -8,35 +8,35 @@ from pathlib import Path
 
 import pandas as pd
 
-from experiments.stats import success_cells
+from experiments.stats import success_rows
 from reports.plotting import FigureResult, gap, panel_grid, plt, save, variant_color
 from reports.store import Study
 
 NAME, TITLE = "success_vs_iterations", "Success vs training iterations (kept checkpoints)"
 
 
-def milestone_cells(study: Study) -> pd.DataFrame:
-    """One row per (iteration, variant, evaluated task): success_cells' columns plus `iteration`."""
+def milestone_rows(study: Study) -> pd.DataFrame:
+    """One row per (iteration, variant, evaluated task): success_rows' columns plus `iteration`."""
     evals = study.eval_metrics()
     if evals.empty or "tags.iteration" not in study.children:
         return pd.DataFrame()
     iteration = dict(zip(study.children["run_id"], study.children["tags.iteration"], strict=True))
     evals = evals[evals["status"] == "FINISHED"].assign(iteration=lambda d: d["run_id"].map(iteration))
     evals = evals[evals["iteration"].notna()].astype({"iteration": int})
-    frames = [success_cells(group, study.variants).assign(iteration=it) for it, group in evals.groupby("iteration")]
+    frames = [success_rows(group, study.variants).assign(iteration=it) for it, group in evals.groupby("iteration")]
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
 def success_vs_iterations(study: Study, folder: Path) -> FigureResult:
-    cells = milestone_cells(study)
-    if cells.empty:
+    agg = milestone_rows(study)
+    if agg.empty:
         return gap(NAME, TITLE, "no finished milestone runs with success metrics")
-    tasks = list(dict.fromkeys(cells["eval_task"]))
+    tasks = list(dict.fromkeys(agg["eval_task"]))
     fig, axes = panel_grid(len(tasks), 4.2, 3.2)
     variants = study.variants
     for ax, task in zip(axes.flat, tasks, strict=False):
         for variant in variants:
-            got = cells[(cells["eval_task"] == task) & (cells["variant"] == variant)].sort_values("iteration")
+            got = agg[(agg["eval_task"] == task) & (agg["variant"] == variant)].sort_values("iteration")
             if got.empty:
                 continue
             color = variant_color(variant, variants)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from experiments.stats import SEED_COLUMN, WILSON_COLUMN, interval, pct, success_cell
+from experiments.stats import SEED_COLUMN, WILSON_COLUMN, interval, pct, success_over_seeds
 from reports.plotting import FigureResult, gap, mark_gap, panel_grid, save
 from reports.store import Study, order_variants
 
@@ -64,7 +64,7 @@ def _pooled(runs: pd.DataFrame, task: str, name: str) -> float:
 def multimodal_table(study: Study) -> pd.DataFrame:
     """One row per (multimodal task, variant), variants in order_variants' order: success (mean over seeds),
     the pooled Wilson interval (ci_low, ci_high) and the seed-level t-interval (seed_low, seed_high)
-    as experiments.stats.success_cell gives them, n (rollouts) and seeds, then the fraction of rollouts in each
+    as experiments.stats.success_over_seeds gives them, n (rollouts) and seeds, then the fraction of rollouts in each
     mode (`mode_<name>`), `between` and `collided` (NaN where the task has no such label). Fractions 0..1;
     a variant without a finished run is a row with seeds = 0."""
     rows = []
@@ -74,11 +74,11 @@ def multimodal_table(study: Study) -> pd.DataFrame:
         ok = ok[ok[rate].notna() & ok[n_col].notna()] if rate in ok and n_col in ok else ok.iloc[:0]
         for variant in study.variants:
             runs = ok[ok["variant"] == variant]
-            cell = success_cell({int(s): (r, n) for s, r, n in zip(runs["seed"], runs[rate], runs[n_col],
-                                                                      strict=True)})
-            row = {"eval_task": task, "variant": variant, "success": cell["mean"], "ci_low": cell["ci_low"],
-                   "ci_high": cell["ci_high"], "seed_low": cell["seed_low"], "seed_high": cell["seed_high"],
-                   "n": cell["n"], "seeds": cell["seeds"]}
+            agg = success_over_seeds({int(s): (r, n) for s, r, n in zip(runs["seed"], runs[rate], runs[n_col],
+                                                                         strict=True)})
+            row = {"eval_task": task, "variant": variant, "success": agg["mean"], "ci_low": agg["ci_low"],
+                   "ci_high": agg["ci_high"], "seed_low": agg["seed_low"], "seed_high": agg["seed_high"],
+                   "n": agg["n"], "seeds": agg["seeds"]}
             row.update({f"mode_{m}": _pooled(runs, task, f"mode_{m}") for m in modes})
             row.update({k: _pooled(runs, task, k) for k in ("between", "collided")})
             rows.append(row)
@@ -127,11 +127,11 @@ def multimodal_markdown(table: pd.DataFrame, variant_label=str) -> str:
                 *(m.removeprefix("mode_") for m in modes), *extra]
         lines = [f"**{task}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for r in part.to_dict("records"):
-            cells = [*(str(r[c]) for c in lead), variant_label(r["variant"]), pct(r["success"]),
-                     interval(r["seed_low"], r["seed_high"]), interval(r["ci_low"], r["ci_high"]),
-                     str(int(r["n"])), str(int(r["seeds"])),
-                     *(pct(r[c]) for c in [*modes, *extra])]
-            lines.append("| " + " | ".join(cells) + " |")
+            entries = [*(str(r[c]) for c in lead), variant_label(r["variant"]), pct(r["success"]),
+                       interval(r["seed_low"], r["seed_high"]), interval(r["ci_low"], r["ci_high"]),
+                       str(int(r["n"])), str(int(r["seeds"])),
+                       *(pct(r[c]) for c in [*modes, *extra])]
+            lines.append("| " + " | ".join(entries) + " |")
         out.append("\n".join(lines))
     return "\n\n".join(out) + "\n"
 

@@ -51,5 +51,5 @@ def task_label(name: str) -> str:
 
 
 def paper_success(variant: str, task: str) -> float | None:
-    """The paper's success rate for a cell, or None where the paper has none."""
+    """The paper's success rate of a variant on a task, or None where the paper has none."""
     return TABLE_I.get(variant, {}).get(task)

@@ -96,7 +96,7 @@ def _runs(s: Study) -> str:
 
 
 def provenance_table(studies: list[Study], success: Callable[[Study], pd.DataFrame | None]) -> Table:
-    """One column per study. success(study): its aggregated success cells (reports.tables.success_summary),
+    """One column per study. success(study): its aggregated success rows (reports.tables.success_summary),
     or None for a study without a success table (the pooled-rollouts row then reads '–')."""
     def pooled(s: Study) -> str:
         agg = success(s)

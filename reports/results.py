@@ -198,16 +198,16 @@ class Results:
         figure."""
         kind, task, studies = ACROSS[ph.kind], ph.arg, [self.named[name] for name in ph.studies]
         try:
-            cells = kind.cells(studies, task)
+            rows = kind.rows(studies, task)
         except kind.error as exc:
             raise ResultsError(f"{ph}: {exc}") from None
-        table = kind.table(cells)
+        table = kind.table(rows)
         text = markdown(table) if not table.empty else f"*No finished runs of {task} in the named studies.*\n"
         text += f"\n- Studies: {', '.join(s.name for s in studies)}; {kind.note(task)}\n\n"
         if kind.figure is None:  # a long table of its own: folded under a summary line
             return f"<details><summary>{kind.name} ({len(table)} rows; {task} models)</summary>\n\n{text}</details>\n"
         return text + self.figure(studies[0], kind.name, kind.out_name(task, studies),
-                                  lambda folder: kind.figure(cells, task, folder),
+                                  lambda folder: kind.figure(rows, task, folder),
                                   label=f"{task}: {len(studies)} stud{'y' if len(studies) == 1 else 'ies'}")
 
     def comparison(self, ph: Placeholder) -> str:

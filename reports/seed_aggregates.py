@@ -1,4 +1,4 @@
-"""The report's aggregates over seeds: success cells with gaps marked (the intervals and comparisons themselves
+"""The report's aggregates over seeds: success rows with gaps marked (the intervals and comparisons themselves
 live in experiments.stats, shared with the study summary), means over seeds, curve bands."""
 
 from __future__ import annotations
@@ -8,41 +8,41 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from experiments.stats import CONFIDENCE, seed_interval, success_cell, wilson_interval
+from experiments.stats import CONFIDENCE, seed_interval, success_over_seeds, wilson_interval
 
 __all__ = ["CONFIDENCE", "aggregate_success", "curve_band", "mean_over_seeds", "seed_interval", "wilson_interval"]
 
 
 def aggregate_success(evals: pd.DataFrame, children: pd.DataFrame, variants: Sequence[str],
                       tasks: Sequence[str], model_task_of, all_seeds: Sequence[int]) -> pd.DataFrame:
-    """One row per (variant, eval_task): experiments.stats.success_cell over the seeds that finished (mean/std
+    """One row per (variant, eval_task): experiments.stats.success_over_seeds over the seeds that finished (mean/std
     over seeds, each seed's rate, pooled successes and n with the Wilson interval, the seed-level
     interval) and `status` ok | partial | gap with a `note` naming what is missing.
 
     evals: Study.eval_metrics(); children: Study.children; model_task_of(eval_task) -> training task.
-    A seed counts when its run FINISHED and logged the rate; expected seeds are those of the cell's runs
+    A seed counts when its run FINISHED and logged the rate; expected seeds are those of the cell group's runs
     (whatever their status) or, with no run at all, every seed of the study."""
     rows = []
     usable = not evals.empty and {"success_rate", "n_rollouts"} <= set(evals.columns)
     finished = evals[(evals["status"] == "FINISHED") & evals["success_rate"].notna()] if usable else None
     for task in tasks:  # grouped by task, as the paper's Table I compares the variants on each task
         for variant in variants:
-            cell_runs = children[(children["variant"] == variant) & (children["task"] == model_task_of(task))]
-            expected = sorted({int(s) for s in cell_runs["seed"].dropna()} or set(all_seeds))
+            group_runs = children[(children["variant"] == variant) & (children["task"] == model_task_of(task))]
+            expected = sorted({int(s) for s in group_runs["seed"].dropna()} or set(all_seeds))
             got = finished[(finished["variant"] == variant) & (finished["eval_task"] == task)] \
                 if finished is not None else pd.DataFrame(columns=["seed", "success_rate", "n_rollouts"])
-            cell = success_cell({int(s): (r, n) for s, r, n in zip(got["seed"], got["success_rate"],
-                                                                   got["n_rollouts"], strict=True)
-                                 if not pd.isna(s)})
-            have = sorted(cell["seed_rates"])
+            agg = success_over_seeds({int(s): (r, n) for s, r, n in zip(got["seed"], got["success_rate"],
+                                                                        got["n_rollouts"], strict=True)
+                                      if not pd.isna(s)})
+            have = sorted(agg["seed_rates"])
             missing = [s for s in expected if s not in have]
             notes = []
-            if cell_runs.empty:  # the study never trained this cell: one note, not one per seed
+            if group_runs.empty:  # the study never trained this cell group: one note, not one per seed
                 missing, notes = [], [f"no {model_task_of(task)} run of this variant in the study"]
             for s in missing:
-                status = cell_runs.loc[cell_runs["seed"] == s, "status"]
+                status = group_runs.loc[group_runs["seed"] == s, "status"]
                 notes.append(f"seed {s}: {status.iloc[0] if len(status) else 'no run'}")
-            rows.append({"variant": variant, "eval_task": task, **cell, "expected_seeds": len(expected),
+            rows.append({"variant": variant, "eval_task": task, **agg, "expected_seeds": len(expected),
                          "status": "gap" if not have else ("partial" if missing else "ok"),
                          "note": "; ".join(notes)})
     return pd.DataFrame(rows)

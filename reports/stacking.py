@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from reports import paper
-from reports.levers import in_variant_order, rollout_cells
+from reports.levers import in_variant_order, rollout_rows
 from reports.plotting import FigureResult, gap, legend_below, panel_grid, plt, save, variant_color
 from reports.store import Study, order_variants
 
@@ -45,12 +45,12 @@ def episode_facts(arrays: dict[str, np.ndarray], sub_horizon: int, grasp: np.nda
     return pd.DataFrame(rows)
 
 
-def stacking_cells(studies: list[Study], task: str) -> pd.DataFrame:
-    """One row per (study, variant) with stacking rollouts of `task`'s models (reports.levers.rollout_cells)."""
+def stacking_rows(studies: list[Study], task: str) -> pd.DataFrame:
+    """One row per (study, variant) with stacking rollouts of `task`'s models (reports.levers.rollout_rows)."""
     from envs.tasks.stack import SUB_HORIZON
 
     grasp = grasp_point()
-    return rollout_cells(studies, task, EVAL_TASK, lambda arrays: episode_facts(arrays, SUB_HORIZON, grasp))
+    return rollout_rows(studies, task, EVAL_TASK, lambda arrays: episode_facts(arrays, SUB_HORIZON, grasp))
 
 
 def shares(facts: pd.DataFrame) -> tuple[list[float], list[float]]:
@@ -60,12 +60,12 @@ def shares(facts: pd.DataFrame) -> tuple[list[float], list[float]]:
     return came, tower
 
 
-def stacking_table(cells: pd.DataFrame) -> pd.DataFrame:
+def stacking_table(agg: pd.DataFrame) -> pd.DataFrame:
     """One row per (variant, study), as strings; a / b / c are blocks 1, 2 and 3."""
-    if cells.empty:
+    if agg.empty:
         return pd.DataFrame()
     rows = []
-    for r in in_variant_order(cells).itertuples():
+    for r in in_variant_order(agg).itertuples():
         came, tower = shares(r.facts)
         closest = [100 * r.facts[f"closest_{k}"].median() for k in range(1, BLOCKS + 1)]
         rows.append({
@@ -79,17 +79,17 @@ def stacking_table(cells: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def stacking_figure(cells: pd.DataFrame, task: str, folder: Path) -> FigureResult:
+def stacking_figure(agg: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     """One panel per study: against the block, the share of episodes that came for it (solid) and the share with a
     tower at least that high (dashed), a colour per variant."""
-    if cells.empty:
+    if agg.empty:
         return gap(NAME, TITLE, f"no stacking rollouts of {task} models in the named studies")
-    studies = list(dict.fromkeys(cells["study"]))
-    variants = order_variants(cells["variant"].unique())
+    studies = list(dict.fromkeys(agg["study"]))
+    variants = order_variants(agg["variant"].unique())
     blocks = np.arange(1, BLOCKS + 1)
     fig, axes = panel_grid(len(studies), 4.0, 3.2)
     for ax, study in zip(axes.flat, studies, strict=False):
-        mine = cells[cells["study"] == study]
+        mine = agg[agg["study"] == study]
         for r in mine.itertuples():
             came, tower = shares(r.facts)
             color = variant_color(r.variant, variants)

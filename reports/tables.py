@@ -21,7 +21,7 @@ GAP = "gap"
 
 @dataclass
 class Table:
-    """A rendered table: header, string cells, notes under it, and the numbers behind it (CSV)."""
+    """A rendered table: header, string entries, notes under it, and the numbers behind it (CSV)."""
 
     name: str
     title: str
@@ -35,10 +35,10 @@ class Table:
         return pd.DataFrame(self.rows, columns=self.columns)
 
     def to_markdown(self) -> str:
-        def esc(s: str) -> str:  # a pipe inside a cell would end it
+        def esc(s: str) -> str:  # a pipe inside an entry would end it
             return str(s).replace("|", "\\|")
         frame = self.frame.map(esc).rename(columns=esc)
-        # every cell is already text: numparse would reformat "0.0100" as "0.01"
+        # every entry is already text: numparse would reformat "0.0100" as "0.01"
         lines = [f"### {self.title}", "", frame.to_markdown(index=False, disable_numparse=True)]
         if self.notes:
             lines += [""] + [f"- {n}" for n in self.notes]
@@ -90,7 +90,7 @@ def _html(text: str) -> str:
     return html.escape(str(text))
 
 
-# Text outside the table (caption, notes) is not escaped by pandas; the cells are (Styler.format(escape=...)).
+# Text outside the table (caption, notes) is not escaped by pandas; the entries are (Styler.format(escape=...)).
 LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$",
                  "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
 UNICODE_LATEX = {"±": r"$\pm$", "–": "--", "†": r"$^\dagger$"}
@@ -102,7 +102,7 @@ def _latex(text: str) -> str:
 
 
 def _unicode_to_latex(text: str) -> str:
-    """Symbols of our cells that pdflatex without unicode set-up rejects (applied after escaping)."""
+    """Symbols of our entries that pdflatex without unicode set-up rejects (applied after escaping)."""
     return re.sub("|".join(UNICODE_LATEX), lambda m: UNICODE_LATEX[m.group(0)], text)
 
 
@@ -120,7 +120,7 @@ def num(x: float, digits: int = 3) -> str:
 
 # ------------------------------------------------------------------------------------------- success
 def success_summary(study: Study, tasks: list[str] | None = None) -> pd.DataFrame:
-    """Aggregated success cells (see stats.aggregate_success) for the study's variants x tasks. A milestones
+    """Aggregated success rows (see seed_aggregates.aggregate_success) for the study's variants x tasks. A milestones
     study evaluates only the tasks of the checkpoints kept so far: its rows are those tasks, not gaps."""
     if tasks is None and study.kind == "milestones":
         evaluated = set(study.eval_metrics().get("eval_task", pd.Series(dtype=str)))
@@ -170,7 +170,7 @@ def circle_summary(study: Study) -> pd.DataFrame:
     rows = []
     for r in radii:
         for v in study.variants:
-            a, b = _cell(rmse, r, v), _cell(mx, r, v)
+            a, b = _of_group(rmse, r, v), _of_group(mx, r, v)
             seeds = max(a[2], b[2])
             rows.append({"radius_cm": r, "variant": v, "rmse_mean": a[0], "rmse_std": a[1],
                          "maxerr_mean": b[0], "maxerr_std": b[1], "seeds": seeds,
@@ -178,7 +178,7 @@ def circle_summary(study: Study) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=cols)
 
 
-def _cell(df: pd.DataFrame | None, radius: float, variant: str) -> tuple[float, float, int]:
+def _of_group(df: pd.DataFrame | None, radius: float, variant: str) -> tuple[float, float, int]:
     """(mean, std, count) of one (radius, variant) group of mean_over_seeds output; NaNs and 0 if absent."""
     if df is None or df.empty:
         return math.nan, math.nan, 0

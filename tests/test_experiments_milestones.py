@@ -65,14 +65,14 @@ def test_milestones_evaluate_each_kept_checkpoint_once(kept_store):
 
 @pytest.mark.slow
 def test_success_vs_iterations_figure_draws_each_variant(kept_store, tmp_path):
-    from reports.milestones import milestone_cells, success_vs_iterations
+    from reports.milestones import milestone_rows, success_vs_iterations
     from reports.store import Store
 
     if not _runs(MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}"), "milestones"):
         assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
     study = Store(f"sqlite:///{kept_store / 'mlflow.db'}").studies("milestones", None)[0]
-    cells = milestone_cells(study)
-    assert sorted(set(cells["iteration"])) == [5, 10] and set(cells["seeds"]) == {2} and set(cells["n"]) == {6}
+    agg = milestone_rows(study)
+    assert sorted(set(agg["iteration"])) == [5, 10] and set(agg["seeds"]) == {2} and set(agg["n"]) == {6}
     fig = success_vs_iterations(study, tmp_path)
     assert fig.gap is None and [p.suffix for p in fig.paths] == [".png", ".pdf"]
     with Image.open(fig.paths[0]) as im:  # lstm's line is drawn in its colour (tab10's first: 31, 119, 180)

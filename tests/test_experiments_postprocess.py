@@ -136,7 +136,7 @@ def test_report_shows_the_studies(store, tmp_path):
         assert f"src='{fig}.png'" in html and "gap:" not in html
         assert (folder / f"{fig}.png").stat().st_size > 1000 and (folder / f"{fig}.pdf").exists()
         md = (folder / f"{table}.md").read_text()
-        assert "gap" not in md.split("\n- ")[0]  # every cell of the table has its number
+        assert "gap" not in md.split("\n- ")[0]  # every entry of the table has its number
         assert f"{study}/index.html" in (tmp_path / "index.html").read_text()
     assert "gradient descent + goal term" in (tmp_path / "smoothing-smoke" / "smoothing_table.md").read_text()
     assert "IDM fine-tuned on perturbed robot" in (tmp_path / "idm-smoke" / "idm_table.md").read_text()

@@ -427,22 +427,22 @@ def test_sign_flip_and_permutation_p_values_are_exact():
     assert groups["n"] == "6+6" and (groups["low"], groups["high"]) == pytest.approx((welch.low, welch.high))
 
 
-def test_success_cell_and_table_say_what_n_counts():
-    from experiments.stats import success_cell, success_table
-    cell = success_cell({0: (0.5, 34), 1: (0.9117647, 34), 2: (float("nan"), 34)})  # seed 2 logged no rate
-    assert cell["seeds"] == 2 and cell["n"] == 68 and cell["successes"] == 17 + 31
-    assert cell["seed_rates"] == {0: 0.5, 1: pytest.approx(31 / 34)}
-    assert cell["mean"] == pytest.approx((0.5 + 31 / 34) / 2)
-    assert (cell["ci_low"], cell["ci_high"]) == pytest.approx(binomtest(48, 68).proportion_ci(0.95, "wilson"))
-    assert cell["seed_low"] < cell["ci_low"] and cell["seed_high"] > cell["ci_high"]
-    one = success_cell({3: (0.5, 10)})
+def test_success_over_seeds_and_table_say_what_n_counts():
+    from experiments.stats import success_over_seeds, success_table
+    success = success_over_seeds({0: (0.5, 34), 1: (0.9117647, 34), 2: (float("nan"), 34)})  # seed 2 logged no rate
+    assert success["seeds"] == 2 and success["n"] == 68 and success["successes"] == 17 + 31
+    assert success["seed_rates"] == {0: 0.5, 1: pytest.approx(31 / 34)}
+    assert success["mean"] == pytest.approx((0.5 + 31 / 34) / 2)
+    assert (success["ci_low"], success["ci_high"]) == pytest.approx(binomtest(48, 68).proportion_ci(0.95, "wilson"))
+    assert success["seed_low"] < success["ci_low"] and success["seed_high"] > success["ci_high"]
+    one = success_over_seeds({3: (0.5, 10)})
     assert one["seeds"] == 1 and math.isnan(one["seed_low"])  # one seed: no seed-level interval
     import pandas as pd
-    frame = success_table(pd.DataFrame([{"variant": "lstm", "eval_task": "reacher", **cell},
-                                        {"variant": "lstm", "eval_task": "stack", **success_cell({})}]))
+    frame = success_table(pd.DataFrame([{"variant": "lstm", "eval_task": "reacher", **success},
+                                        {"variant": "lstm", "eval_task": "stack", **success_over_seeds({})}]))
     assert list(frame.columns) == ["task", "variant", "success", "per seed", "seed-level 95%",
                                    "Wilson 95% (rollouts independent)", "rollouts", "seeds"]
-    assert frame.iloc[0].tolist()[2:] == ["71%", "50% / 91%", f"{100 * cell['seed_low']:.0f}–100%", "59–80%",
+    assert frame.iloc[0].tolist()[2:] == ["71%", "50% / 91%", f"{100 * success['seed_low']:.0f}–100%", "59–80%",
                                           "68", "2"]
     assert frame.iloc[1].tolist()[2:] == ["gap", "–", "–", "–", "0", "0"]
 
@@ -538,8 +538,8 @@ def test_comparisons_pair_the_seeds_that_saw_the_same_episodes():
     other_episodes = comparisons.between(named, "reacher", "a/lstm", "b/lstm")  # same seeds, other episodes
     assert (other_episodes["test"], other_episodes["n"]) == ("groups", "3+3")
     assert comparisons.between(named, "reacher", "a/ac-lstm+lstm", "b/lstm")["n"] == "6+3"  # pooled variants
-    cells = comparisons.paper_cells([a], "reacher")  # of the paper's comparisons, the one this study has
-    assert cells[["A", "B", "A − B (points)", "p", "test"]].values.tolist() == [
+    agg = comparisons.paper_rows([a], "reacher")  # of the paper's comparisons, the one this study has
+    assert agg[["A", "B", "A − B (points)", "p", "test"]].values.tolist() == [
         ["a.c. LSTM", "LSTM", "+20", "0.25", "paired, 3 seeds"]]
     with pytest.raises(comparisons.ComparisonError, match="no finished lstm-mdn run"):
         comparisons.between(named, "reacher", "a/lstm-mdn", "a/lstm")

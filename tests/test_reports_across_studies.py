@@ -64,31 +64,31 @@ def test_one_curve_from_two_studies(store, tmp_path):
 
 
 def test_each_study_sits_at_its_own_number_of_demonstrations(store):
-    from reports.data_scaling import scaling_cells
+    from reports.data_scaling import scaling_rows
     from reports.selection import Selection
     from reports.store import Store
 
     selection = Selection(Store(f"sqlite:///{store / 'mlflow.db'}"))
-    cells = scaling_cells([selection.pick(name, ("ablation",)) for name in ("demos6", "demos4")], "reacher")
-    assert sorted(set(zip(cells["n_demos"], cells["study"], strict=True))) == [(4, "demos4"), (6, "demos6")]
-    assert set(cells["eval_task"]) == {"reacher", "reacher-changing-goal"} and set(cells["n"]) == {2}
-    assert scaling_cells([selection.pick("demos4", ("ablation",))], "circle").empty  # no runs of that task
+    agg = scaling_rows([selection.pick(name, ("ablation",)) for name in ("demos6", "demos4")], "reacher")
+    assert sorted(set(zip(agg["n_demos"], agg["study"], strict=True))) == [(4, "demos4"), (6, "demos6")]
+    assert set(agg["eval_task"]) == {"reacher", "reacher-changing-goal"} and set(agg["n"]) == {2}
+    assert scaling_rows([selection.pick("demos4", ("ablation",))], "circle").empty  # no runs of that task
 
 
 def test_studies_of_other_variants_share_a_number_of_demonstrations(store):
     """A variant trained later in a study of its own joins the curve at the same count; one variant twice at
     one count is an error (test_the_same_study_twice_is_one_line)."""
-    from reports.data_scaling import DataScalingError, scaling_cells
+    from reports.data_scaling import DataScalingError, scaling_rows
     from reports.selection import Selection
     from reports.store import Store
 
     selection = Selection(Store(f"sqlite:///{store / 'mlflow.db'}"))
     pick = lambda name: selection.pick(name, ("ablation",))  # noqa: E731
-    cells = scaling_cells([pick("demos6"), pick("demos4"), pick("demos6-ac")], "reacher")
-    assert sorted(set(zip(cells["n_demos"], cells["variant"], cells["study"], strict=True))) == [
+    agg = scaling_rows([pick("demos6"), pick("demos4"), pick("demos6-ac")], "reacher")
+    assert sorted(set(zip(agg["n_demos"], agg["variant"], agg["study"], strict=True))) == [
         (4, "lstm", "demos4"), (6, "ac-lstm", "demos6-ac"), (6, "lstm", "demos6")]
     with pytest.raises(DataScalingError, match="variant lstm"):
-        scaling_cells([pick("demos6"), pick("demos6")], "reacher")
+        scaling_rows([pick("demos6"), pick("demos6")], "reacher")
 
 
 @pytest.mark.parametrize(("placeholder", "message"), [
