@@ -210,7 +210,10 @@ def points(x: float) -> str:
 
 
 def p_value(p: float) -> str:
-    return "–" if math.isnan(p) else f"{p:.3f}" if p < 0.01 else f"{p:.2f}"
+    """A p-value as printed: two decimals, three below 0.01, and '< 0.001' below that (never '0.000')."""
+    if math.isnan(p):
+        return "–"
+    return "< 0.001" if p < 0.001 else f"{p:.3f}" if p < 0.01 else f"{p:.2f}"
 
 
 def success_table(agg: pd.DataFrame, variant_label=str, task_label=str) -> pd.DataFrame:

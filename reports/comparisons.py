@@ -145,8 +145,9 @@ def _points_interval(c: dict) -> str:
 
 def sentence(c: dict) -> str:
     """One comparison inline: '+35 points (95 % interval +12 to +58; paired, 3 seeds; p = 0.25)'."""
+    p = p_value(c["p"])
     return (f"{points(c['difference'])} points (95 % interval {_points_interval(c)}; {_test(c)}; "
-            f"p = {p_value(c['p'])})")
+            f"p {p if p.startswith('<') else '= ' + p})")
 
 
 def between(studies: dict[str, Study], eval_task: str, a: str, b: str) -> dict:

@@ -427,6 +427,15 @@ def test_sign_flip_and_permutation_p_values_are_exact():
     assert groups["n"] == "6+6" and (groups["low"], groups["high"]) == pytest.approx((welch.low, welch.high))
 
 
+def test_small_p_values_print_as_a_bound_not_as_zero():
+    from experiments.stats import p_value
+    from reports.comparisons import sentence
+
+    assert [p_value(p) for p in (0.25, 0.0625, 0.004, 0.0004)] == ["0.25", "0.06", "0.004", "< 0.001"]
+    c = {"difference": -0.21, "low": -0.30, "high": -0.12, "p": 2e-5, "test": "groups", "n": "10+10"}
+    assert sentence(c).endswith("; p < 0.001)")
+
+
 def test_success_over_seeds_and_table_say_what_n_counts():
     from experiments.stats import success_over_seeds, success_table
     success = success_over_seeds({0: (0.5, 34), 1: (0.9117647, 34), 2: (float("nan"), 34)})  # seed 2 logged no rate
