@@ -49,7 +49,7 @@ RUNS_FILE = "runs.json"
 ARTIFACTS = "artifacts"
 DEFAULT_EXPORTS = Path("reports/studies")
 SNAPSHOTS = Path("snapshots")  # exports with checkpoints: out of git
-MAX_HISTORY = 500
+MAX_HISTORY = 200  # points per metric history: the training curves need no more, and runs.json stays small
 HISTORY_NOTE = (f"a metric history longer than {MAX_HISTORY} points keeps every k-th point in (step, timestamp) "
                 f"order, k = ceil(n / {MAX_HISTORY}), and always its last one (MLflow's latest value); "
                 "thinned_from gives n for those")
