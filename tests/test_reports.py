@@ -417,6 +417,8 @@ def test_sign_flip_and_permutation_p_values_are_exact():
     a, b = [0.9, 0.8, 0.85, 0.7, 0.95, 0.75], [0.2, 0.3, 0.1, 0.4, 0.25, 0.35]
     assert permutation_p(a, b) == pytest.approx(2 / 924)
     assert permutation_p([0.5, 0.5], [0.5, 0.5]) == 1.0
+    many = permutation_p([0.9] * 15, [0.1] * 15)  # 155 million splits: estimated from random ones, not listed
+    assert 0 <= many < 0.001 and many == permutation_p([0.9] * 15, [0.1] * 15)
     paired = paired_comparison({0: 0.6, 1: 0.7, 2: 0.9}, {0: 0.5, 1: 0.4, 2: 0.6, 3: 0.1})  # seed 3: no pair
     assert paired["n"] == 3 and paired["difference"] == pytest.approx(0.7 / 3) and paired["p"] == pytest.approx(0.25)
     from scipy import stats
