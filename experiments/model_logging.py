@@ -6,7 +6,7 @@ Saved as a pickle, not as torch.export's pt2 (MLflow's default): an exported pro
 forward() only, and a rollout also calls normalize, predict and denormalize. The pickle names
 the STM class by its import path, so loading needs this project installed; the requirements
 pin it and its dependencies at the versions that trained the model. The resume checkpoint
-(experiments/worker.py) is a separate artifact and stays the one that training resumes from.
+(experiments/cell_run.py) is a separate artifact and stays the one that training resumes from.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from importlib import metadata
 import numpy as np
 from mlflow.entities import LoggedModelStatus
 
-from experiments.tracking import with_retries
+from experiments.runtime.tracking import with_retries
 
 log = logging.getLogger(__name__)
 
