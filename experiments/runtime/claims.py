@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from experiments.cells import Cell
+from experiments.runtime.backend_internals import lost_param_race
 from experiments.runtime.tracking import Client, log_metrics, set_tags
 
 log = logging.getLogger(__name__)
@@ -98,7 +99,7 @@ def try_claim(client: Client, run_id: str, grace: float, me: str) -> int:
     try:
         client.log_param(run_id, f"{CLAIM}{n}", me)
     except MlflowException as exc:
-        if exc.error_code != "INVALID_PARAMETER_VALUE":
+        if not lost_param_race(exc):
             raise
         return 0  # another process took claim n first
     # who trains the cell now (host:pid): set by the holder only, never by a process waiting for it

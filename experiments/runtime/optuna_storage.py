@@ -21,6 +21,7 @@ from pathlib import Path
 import tenacity
 from mlflow.entities import Metric
 
+from experiments.runtime.backend_internals import is_schema_race, told_after_failed_as_stale
 from experiments.runtime.claims import is_live
 from experiments.runtime.store_check import redact
 from experiments.runtime.tracking import Client, schema_lock, set_tags, sqlite_path, store_dir
@@ -39,12 +40,6 @@ def storage_spec(storage: str | None, uri: str) -> str:
 def has_heartbeat(spec: str) -> bool:
     """RDB storages beat heartbeats (open_storage turns them on); the journal file does not."""
     return not spec.startswith(JOURNAL_PREFIX)
-
-
-def _schema_race(exc: BaseException) -> bool:
-    from sqlalchemy.exc import IntegrityError, ProgrammingError
-
-    return isinstance(exc, IntegrityError | ProgrammingError)
 
 
 def open_storage(spec: str, sweep: SweepConfig | None = None, uri: str | None = None):
@@ -66,7 +61,7 @@ def open_storage(spec: str, sweep: SweepConfig | None = None, uri: str | None = 
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         if db is None:  # a server database: processes creating its schema at once race (a unique-key error
             # in the loser's CREATE); the schema then exists, so the loser's retry just opens it
-            return tenacity.retry(retry=tenacity.retry_if_exception(_schema_race), reraise=True,
+            return tenacity.retry(retry=tenacity.retry_if_exception(is_schema_race), reraise=True,
                                   stop=tenacity.stop_after_attempt(5),
                                   wait=tenacity.wait_random_exponential(multiplier=0.2, max=3))(
                 optuna.storages.RDBStorage)(spec, **kwargs)
@@ -101,6 +96,24 @@ def retry_callback(max_retry: int):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         return optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
+
+
+def retried_trial_number(frozen) -> int | None:
+    """The trial that a re-queued trial retries, None for a first attempt (recorded by the retry callback)."""
+    import optuna
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.storages.RetryHeartbeatStaleTrialCallback.retried_trial_number(frozen)
+
+
+def retry_history(frozen) -> list[int]:
+    """The trials that a re-queued trial retries, the first attempt first."""
+    import optuna
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.storages.RetryHeartbeatStaleTrialCallback.retry_history(frozen)
 
 
 class RetryDeadTrial:
@@ -143,18 +156,6 @@ class RetryDeadTrial:
         client.set_terminated(run_id, "FAILED")
 
 
-def _told_after_failed_as_stale(exc: BaseException) -> bool:
-    """Optuna's refusal to record a trial that another worker had already failed as stale (its
-    heartbeat came late, e.g. on a starved machine) and re-queued: the work it did stands. Optuna
-    5 raises it as ValueError("Cannot tell a FAIL trial."), masked by an AssertionError from its
-    own clean-up, so the chain is searched."""
-    while exc is not None:
-        if isinstance(exc, ValueError) and str(exc).startswith("Cannot tell a FAIL trial"):
-            return True
-        exc = exc.__context__
-    return False
-
-
 def drain(study, run_one: Callable[[], None], poll: float, what: str = "trial") -> None:
     """The loop every worker ends with (RDB storages): fail the trials of dead workers (they are
     re-queued as WAITING), run WAITING ones one at a time with `run_one`, and return once no
@@ -166,7 +167,7 @@ def drain(study, run_one: Callable[[], None], poll: float, what: str = "trial") 
             try:
                 run_one()
             except (ValueError, AssertionError) as exc:
-                if not _told_after_failed_as_stale(exc):
+                if not told_after_failed_as_stale(exc):
                     raise
                 log.warning("a %s of this worker was failed as stale by another while it ran (a late "
                             "heartbeat) and re-queued; its results stand", what)

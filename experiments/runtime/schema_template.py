@@ -5,7 +5,8 @@ and machine, the empty store is a file copy from then on.
 
 The template is what MLflow itself created, minus the default experiment (id 0): MLflow adds
 that one when it first opens a store that lacks it, with the new store's own artifact location,
-so a copied store is what MLflow would have made. Anything going wrong here (no writable cache,
+so a copied store is what MLflow would have made (the SQL that removes it and checks a template:
+experiments/runtime/backend_internals.py). Anything going wrong here (no writable cache,
 a damaged template) only costs the time saved: the caller then lets MLflow create the store.
 
 The template lies in $XDG_CACHE_HOME/acrmdn (default ~/.cache/acrmdn), named by MLflow's version.
@@ -16,10 +17,11 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import sqlite3
 import tempfile
 from importlib import metadata
 from pathlib import Path
+
+from experiments.runtime.backend_internals import drop_default_experiment, is_empty_store
 
 log = logging.getLogger(__name__)
 
@@ -37,28 +39,8 @@ def _build(template: Path) -> None:
     with tempfile.TemporaryDirectory(dir=template.parent) as scratch:
         db = Path(scratch) / "mlflow.db"
         MlflowClient(tracking_uri=f"sqlite:///{db}").search_experiments(max_results=1)
-        con = sqlite3.connect(db)
-        try:
-            with con:
-                con.execute("DELETE FROM experiment_tags WHERE experiment_id = 0")
-                con.execute("DELETE FROM experiments WHERE experiment_id = 0")
-        finally:
-            con.close()
+        drop_default_experiment(db)
         os.replace(db, template)
-
-
-def _is_store(path: Path) -> bool:
-    """An SQLite file with MLflow's schema version table and no experiment (what _build leaves)."""
-    try:
-        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-        try:
-            version = con.execute("SELECT version_num FROM alembic_version").fetchone()
-            empty = con.execute("SELECT COUNT(*) FROM experiments").fetchone()[0] == 0
-        finally:
-            con.close()
-    except sqlite3.DatabaseError:
-        return False
-    return version is not None and empty
 
 
 def create_from_template(db: Path) -> bool:
@@ -71,7 +53,7 @@ def create_from_template(db: Path) -> bool:
     try:
         template.parent.mkdir(parents=True, exist_ok=True)
         with FileLock(f"{template}.lock", timeout=120):
-            if not (template.exists() and _is_store(template)):
+            if not (template.exists() and is_empty_store(template)):
                 _build(template)
     except Exception as exc:  # noqa: BLE001 - a faster path only; MLflow's own creation still works
         log.debug("no schema template for %s (%s: %s)", db, type(exc).__name__, exc)

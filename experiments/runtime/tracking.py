@@ -26,6 +26,7 @@ import tenacity
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
+from experiments.runtime.backend_internals import is_param_conflict, is_transient_store_error
 from experiments.runtime.schema_template import create_from_template
 
 log = logging.getLogger(__name__)
@@ -42,9 +43,6 @@ ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES = "ablation", "sweep", "smoothing", 
 STUDY_KINDS = (ABLATION, SWEEP, SMOOTHING, IDM, MILESTONES)  # one MLflow experiment per study kind
 MILESTONE_ITERATION = "milestone.iteration"  # param of a milestones study's run: its checkpoint's iteration
 PACKAGES = ("torch", "numpy", "pybullet", "pytorch-kinematics", "mlflow", "optuna", "scipy", "acrmdn")
-# a param another process inserted between our read and our write (PostgreSQL, SQLite, MLflow's own check)
-_PARAM_CONFLICTS = ("duplicate key", "UNIQUE constraint failed", "Changing param values is not allowed")
-_RETRY_MARKERS = ("database is locked", "database table is locked", "sqlite3.OperationalError", "disk I/O error")
 
 
 def tracking_uri() -> str:
@@ -74,14 +72,9 @@ def schema_lock(db: Path):
     return FileLock(f"{db}.lock", timeout=120)
 
 
-def _is_transient(exc: BaseException) -> bool:
-    text = f"{type(exc).__name__}: {exc}"
-    return any(m in text for m in _RETRY_MARKERS)
-
-
 def with_retries(fn: Callable, attempts: int = 8, base_delay: float = 0.05) -> Callable:
     """Retry a store call on SQLite lock contention (exponential backoff with full jitter)."""
-    return tenacity.retry(retry=tenacity.retry_if_exception(_is_transient), reraise=True,
+    return tenacity.retry(retry=tenacity.retry_if_exception(is_transient_store_error), reraise=True,
                           stop=tenacity.stop_after_attempt(attempts),
                           wait=tenacity.wait_random_exponential(multiplier=base_delay, max=10),
                           before_sleep=tenacity.before_sleep_log(log, logging.DEBUG))(fn)
@@ -285,7 +278,7 @@ def log_params(client: Client, run_id: str, params: Mapping[str, Any]) -> None:
                 client.log_batch(run_id, params=new)
             break
         except MlflowException as exc:  # another command of the study logged them at the same moment: read again
-            if attempt == 2 or not any(m in str(exc) for m in _PARAM_CONFLICTS):
+            if attempt == 2 or not is_param_conflict(exc):
                 raise
     changed = {f"changed.{k}": v for k, v in values.items() if k in existing and existing[k] != v}
     if changed:

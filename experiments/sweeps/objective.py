@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from experiments.eval_sweep_config import INT_RANGES
-from experiments.runtime.optuna_storage import worker_id
+from experiments.runtime.optuna_storage import retried_trial_number, worker_id
 from experiments.runtime.tracking import (
     PARENT_TAG,
     Client,
@@ -128,7 +128,7 @@ class MlflowTrialLink:
         tags = {**self.tags, PARENT_TAG: self.parent_id, "role": "trial", "trial": str(trial.number),
                 "optuna_study": trial.study.study_name}
         frozen = next(t for t in trial.study.get_trials(deepcopy=False) if t.number == trial.number)
-        retried = frozen.system_attrs.get("failed_trial")  # set by the retry callback (sweep_storage)
+        retried = retried_trial_number(frozen)
         if retried is not None:
             tags["retry_of_trial"] = str(retried)
         name = f"{self.tags.get('task', 'trial')}/{self.tags.get('variant', '')}/trial{trial.number}"

@@ -80,6 +80,7 @@ from experiments.runtime.optuna_storage import (
     has_heartbeat,
     open_storage,
     retry_callback,
+    retry_history,
     storage_spec,
     trials_in,
 )
@@ -362,5 +363,5 @@ def unrecovered_failures(trials) -> list:
     from optuna.trial import TrialState
 
     recovered = {n for t in trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)
-                 for n in t.system_attrs.get("retry_history", [])}
+                 for n in retry_history(t)}
     return [t for t in trials if t.state == TrialState.FAIL and t.number not in recovered]

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from experiments.runtime.backend_internals import MLFLOW_TABLES, table_names
 from experiments.runtime.tracking import (  # noqa: F401  (file_safe: the reports' name for output files)
     DEFAULT_TRACKING_URI,
     FAILED_STATUSES,
@@ -342,14 +343,10 @@ def _check_sqlite_store(path: Path, uri: str) -> None:
     if not path.exists():
         raise StoreError(f"no MLflow store at {uri} (run a study first, or set MLFLOW_TRACKING_URI)")
     try:
-        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-        try:
-            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-        finally:
-            con.close()
+        tables = table_names(path)
     except sqlite3.Error as exc:
         raise StoreError(f"{path} is not an MLflow store ({exc})") from None
-    if not {"experiments", "runs"} <= tables:
+    if not MLFLOW_TABLES <= tables:
         raise StoreError(f"{path} is not an MLflow store (no experiments/runs tables)")
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
+from experiments.runtime.backend_internals import artifact_repository
 from reports.data.store import Study
 from reports.plotting import FigureResult
 from reports.study_report import ablation_figures, control_report, sweep_summary, tables, trajectories
@@ -98,9 +99,7 @@ def _log_report(study: Study, folder: Path) -> None:
     """Copy the report to the parent run's artifacts under report/, replacing an earlier copy (only that
     folder, which only this module writes) so that the copy matches the folder exactly."""
     try:
-        from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
-
-        repo = get_artifact_repository(study.client.get_run(study.run_id).info.artifact_uri)
+        repo = artifact_repository(study.client.get_run(study.run_id).info.artifact_uri)
         try:
             repo.delete_artifacts(ARTIFACT_PATH)
         except NotImplementedError:  # some artifact stores cannot delete: files are then overwritten only
