@@ -248,26 +248,25 @@ class SeedValidation:
 
 def train_seeds(model_cfg, train_cfgs: list, task, demos, buffer: MetricBuffer,
                 watch: SeedValidation) -> tuple[list, float, int]:
-    """Train one model per train config (seed): `train` for one, `train_packed` for several;
+    """Train one model per train config (seed), as one pack (one seed: a pack of one);
     (models, training seconds, iterations). A seed whose training diverged fails the trial."""
-    from stm.training.loop import train, train_packed
+    from stm.training.loop import train_packed
+
+    seeds = [c.seed for c in train_cfgs]
+    # one seed's metrics are logged as they are, several seeds' as seed<s>/<name> (as evaluate_seeds does)
+    prefixes = [""] if len(seeds) == 1 else [f"seed{s}/" for s in seeds]
+
+    def on_metrics(k: int, iteration: int, metrics: dict[str, float]) -> None:
+        buffer.add(iteration, {f"{prefixes[k]}{name}": v for name, v in metrics.items()})
 
     with tempfile.TemporaryDirectory(prefix="acrmdn-trial-") as tmp:
-        if len(train_cfgs) == 1:
-            result = train(model_cfg, train_cfgs[0], task, demos, checkpoint_path=Path(tmp) / "model.pt",
-                           resume=False, on_metrics=buffer.add,
-                           on_validation=lambda iteration, value: watch(0, iteration, value))
-            return [result.model], result.seconds, result.iterations
-        seeds = [c.seed for c in train_cfgs]
-
-        def on_metrics(k: int, iteration: int, metrics: dict[str, float]) -> None:
-            buffer.add(iteration, {f"seed{seeds[k]}/{name}": v for name, v in metrics.items()})
-
         results = train_packed(model_cfg, train_cfgs, task, demos, resume=False,
                                checkpoint_paths=[Path(tmp) / f"seed{s}.pt" for s in seeds],
                                on_metrics=on_metrics, on_validation=watch)
     for s, r in zip(seeds, results, strict=True):
         if r.failure is not None:
+            if len(seeds) == 1:
+                raise r.failure  # what stm.training.loop.train raises for a single model
             raise RuntimeError(f"seed {s}: {r.failure}") from r.failure
     return [r.model for r in results], max(r.seconds for r in results), max(r.iterations for r in results)
 
