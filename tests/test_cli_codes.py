@@ -43,8 +43,8 @@ def test_bad_queue_is_one_line_and_exit_code_2(tmp_path, queue, uri, message, mo
 
 
 def test_default_queue_lies_next_to_a_local_store(tmp_path):
-    from experiments.config import ConfigError
-    from experiments.queue import resolve_queue
+    from experiments.runtime.cell_queue import resolve_queue
+    from experiments.study_config import ConfigError
 
     assert resolve_queue(None, f"sqlite:///{tmp_path / 'mlflow.db'}") == f"sqlite:///{tmp_path / 'queue.db'}"
     assert resolve_queue("postgresql://h/q") == "postgresql://h/q"
@@ -68,7 +68,7 @@ def test_workers_variable_sets_the_default_and_the_flag_wins(monkeypatch):
     import os
 
     from experiments.cli import build_parser, load_config
-    from experiments.procs import default_workers
+    from experiments.runtime.processes import default_workers
 
     monkeypatch.setenv("ACRMDN_WORKERS", "3")
     assert default_workers() == 3
