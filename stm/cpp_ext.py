@@ -1,0 +1,60 @@
+"""The project's C++ extension (stm/csrc), built from its own sources on first use and cached.
+
+torch.utils.cpp_extension.load compiles the sources with ninja into the torch extensions folder
+(TORCH_EXTENSIONS_DIR, by default under the user's cache) and, in later processes, only loads what it built
+there (it rebuilds when a source or flag changes; a file lock keeps parallel processes from building twice).
+Where no compiler or ninja is found, or the build fails, `self_fed_extension` warns once and returns None:
+the callers fall back to the pure-PyTorch path, which computes the same.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import shutil
+import time
+import warnings
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).parent / "csrc" / "self_fed.cpp"
+NAME = "stm_self_fed"
+build_seconds: float | None = None  # how long the last load took (a first build: about a minute on two cores)
+
+
+def _find_ninja() -> None:
+    """torch runs `ninja` from PATH; the ninja wheel (a dependency) puts it in the environment's bin, which is on
+    PATH only in an activated environment: add its folder."""
+    if shutil.which("ninja") is None:
+        try:
+            import ninja  # type: ignore[import-untyped]
+
+            os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
+        except ImportError:
+            pass
+
+
+@functools.cache
+def self_fed_extension():
+    """The compiled module (segment_forward, segment_backward), or None (one warning) where it cannot be built."""
+    global build_seconds
+    try:
+        from torch.utils import cpp_extension
+
+        _find_ninja()
+        cpp_extension.verify_ninja_availability()
+        compiler = os.environ.get("CXX", "c++")
+        if shutil.which(compiler) is None:
+            raise RuntimeError(f"no C++ compiler ({compiler}) on PATH")
+        start = time.perf_counter()
+        ext = cpp_extension.load(NAME, [str(SOURCE)], extra_cflags=["-O2"], verbose=False)
+        build_seconds = time.perf_counter() - start
+        log.info("C++ step kernel ready in %.1f s (built or loaded from %s)", build_seconds,
+                 cpp_extension._get_build_directory(NAME, verbose=False))
+        return ext
+    except Exception as exc:  # a missing toolchain or a failed build: the Python path computes the same
+        warnings.warn(f"the C++ step kernel is unavailable ({type(exc).__name__}: {exc}); using the Python step",
+                      RuntimeWarning, stacklevel=2)
+        return None
