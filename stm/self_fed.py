@@ -2,10 +2,12 @@
 
 A self-fed step of stm.autoconditioning.unroll in Python is the feedback head, the fed-back state
 (stm.model.feedback_state with the tip kinematics of stm.fk) and the LSTM stack step (stm.lstm_step): ~330 small
-ATen calls forward and backward, each paying Python's per-op cost. `segment_runner` gives the unroll one autograd
-node per run of self-fed steps instead, whose forward and backward are the same ATen calls issued from C++. The
-LSTM weights' gradient stays deferred (the node hands its ([x, h], d gates) rows to the stepper's DeferredGrads);
-the feedback head's is one product per segment.
+ATen calls forward and backward, each paying Python's per-op cost. `cpp_steps` gives the unroll one autograd
+node per run of self-fed steps instead, whose forward and backward are the same ATen calls issued from C++; and
+one per ground-truth chunk between them, a layer sequence in C++ (oneDNN's fused layer, which the Python path
+calls for one model, pays more set-up than five steps cost; the Python layer sequence, for a pack, pays Python's
+per-op cost). The LSTM weights' gradient stays deferred (the nodes hand their ([x, h], d gates) rows to the
+stepper's DeferredGrads); the feedback head's is one product per segment.
 
 TrainConfig.step_kernel = "cpp" selects it where it applies: an MDN head feeding back component_mean or a
 deterministic head; phi fed back free, or grounded where the task's phi is the tip plus a function of psi
@@ -87,11 +89,59 @@ class _Segment(torch.autograd.Function):
         return (None, None, None, None, None, dw_fb, db_fb, *dh, *dc) + (None,) * (2 * L)
 
 
-def segment_runner(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.Tensor,
-                   return_inputs: bool = False):
-    """A function (h, c per layer, q (K, B, 7) before the segment, t of its first step, n steps) -> (top hidden
-    states (K, B, n, H), h, c after it) running an unroll's self-fed segments in C++; None where the Python
-    steps must run (see the module docstring). psi (K, B, T+1, P): the unroll's."""
+class _Sequence(torch.autograd.Function):
+    """n known inputs (K, B, n, D) through the stack (the C++ layer sequence): top hidden states (K, B, n, H) and
+    the per-layer h, c after the last step. The inputs get no gradient (ground truth)."""
+
+    @staticmethod
+    def forward(ctx, layers: int, store: DeferredGrads, x, *hc_wb):
+        h, c, wb = list(hc_wb[:layers]), list(hc_wb[layers: 2 * layers]), hc_wb[2 * layers:]
+        out, h, c, seq = self_fed_extension().sequence_forward(x, h, c, list(wb[0::2]), list(wb[1::2]))
+        ctx.seq, ctx.store = seq, store
+        ctx.set_materialize_grads(False)
+        return (out, *h, *c)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_out, *g_hc):
+        L = len(g_hc) // 2
+        dh, dc, xh, dg = self_fed_extension().sequence_backward(ctx.seq, g_out, list(g_hc[:L]), list(g_hc[L:]))
+        ctx.seq = None
+        for k in range(L):
+            ctx.store.xh[k].append(xh[k])
+            ctx.store.dgates[k].append(dg[k])
+        return (None, None, None, *dh, *dc) + (None,) * (2 * L)
+
+
+class CppSteps:
+    """An unroll's steps after the first chunk in C++: `known` runs ground-truth chunks, `self_fed` self-fed
+    segments; both on the unroll's stepper's weights, their weight gradients deferred to its store."""
+
+    def __init__(self, consts: _Constants, stepper, psi: torch.Tensor, offset: torch.Tensor, w_fb, b_fb):
+        self.consts, self.stepper, self.psi, self.offset = consts, stepper, psi, offset
+        self.w_fb, self.b_fb = w_fb, b_fb
+        self.layers = stepper.layers
+
+    def _split(self, out):
+        L = self.layers
+        return out[0], list(out[1: 1 + L]), list(out[1 + L:])
+
+    def known(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]):
+        """Centred known inputs (K, B, n, D) from per-layer h, c -> (top hidden states (K, B, n, H), h, c)."""
+        st = self.stepper
+        return self._split(_Sequence.apply(self.layers, st.store, x, *h, *c, *st.wb))
+
+    def self_fed(self, h: list[torch.Tensor], c: list[torch.Tensor], q0: torch.Tensor, t: int, n: int):
+        """n self-fed steps from input step t, q (K, B, 7) before them -> (top hidden states (K, B, n, H), h, c)."""
+        st = self.stepper
+        return self._split(_Segment.apply(self.consts, st.store, q0, self.psi[:, :, t: t + n],
+                                          self.offset[:, :, t: t + n], self.w_fb, self.b_fb, *h, *c, *st.wb))
+
+
+def cpp_steps(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.Tensor,
+              return_inputs: bool = False) -> CppSteps | None:
+    """The C++ steps for an unroll (psi (K, B, T+1, P): the unroll's); None where the Python steps must run (see
+    the module docstring)."""
     if not supported(view, cfg, return_inputs):
         return None
     grounded = cfg.phi_mode == "grounded"
@@ -103,11 +153,4 @@ def segment_runner(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: to
         return None
     consts = _Constants(view, task, kin, cfg, stepper.layers)
     w_fb, b_fb = view.feedback_weights(cfg.feedback, consts.dims)
-    L = stepper.layers
-
-    def run(h: list[torch.Tensor], c: list[torch.Tensor], q0: torch.Tensor, t: int, n: int):
-        out = _Segment.apply(consts, stepper.store, q0, psi[:, :, t: t + n], offset[:, :, t: t + n], w_fb, b_fb,
-                             *h, *c, *stepper.wb)
-        return out[0], list(out[1: 1 + L]), list(out[1 + L:])
-
-    return run
+    return CppSteps(consts, stepper, psi, offset, w_fb, b_fb)

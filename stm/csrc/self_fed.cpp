@@ -248,10 +248,101 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
   return {gh, gc, dw_fb, db_fb, xh_out, dg_out};
 }
 
+// Known inputs (ground truth) through the stack, n steps: layer by layer, the input projection of all steps as one
+// product and only the recurrent part stepped (stm.packed_lstm_step._LayerSeq, op for op). For short runs between
+// self-fed segments this beats oneDNN's fused layer, whose set-up costs more than its five steps.
+struct SeqLayer {
+  Tensor x, h0, out;             // input (K, B, n, I), initial h, outputs (K, B, n, H)
+  TensorList gd, o_dt, f;        // per step
+};
+
+struct Sequence {
+  TensorList ws;
+  std::vector<SeqLayer> layers;
+};
+
+std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
+    Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs) {
+  auto seq = std::make_shared<Sequence>();
+  seq->ws = ws;
+  const int64_t K = x.size(0), B = x.size(1), n = x.size(2), H = h[0].size(-1);
+  for (size_t k = 0; k < h.size(); ++k) {
+    const int64_t I = x.size(3);
+    SeqLayer lay;
+    lay.x = x;
+    lay.h0 = h[k];
+    auto w_x = ws[k].narrow(1, 0, I);
+    auto w_h = ws[k].narrow(1, I, H).contiguous();
+    auto proj = at::baddbmm(bs[k], x.reshape({K, B * n, I}), w_x).view({K, B, n, 4 * H});
+    Tensor hk = h[k], ck = c[k];
+    TensorList hs;
+    for (int64_t t = 0; t < n; ++t) {
+      auto sig = at::sigmoid(at::baddbmm(proj.select(2, t), hk, w_h));
+      auto i = sig.narrow(-1, 0, H);
+      auto f = sig.narrow(-1, H, H);
+      auto o = sig.narrow(-1, 2 * H, H);
+      auto g = at::sub(at::mul(sig.narrow(-1, 3 * H, H), 2.0), 1.0);
+      auto c_new = at::addcmul(f * ck, i, g);
+      auto tc = at::tanh(c_new);
+      auto h_new = o * tc;
+      lay.gd.push_back(at::cat({g, ck, tc, at::mul(i, 2.0)}, -1) * at::addcmul(sig, sig, sig, -1.0));
+      lay.o_dt.push_back(at::addcmul(o, h_new, tc, -1.0));
+      lay.f.push_back(f);
+      hs.push_back(h_new);
+      hk = h_new;
+      ck = c_new;
+    }
+    lay.out = at::stack(hs, 2);
+    x = lay.out;
+    h[k] = hk;
+    c[k] = ck;
+    seq->layers.push_back(std::move(lay));
+  }
+  return {x, h, c, seq};
+}
+
+// Gradients of the initial h, c per layer; per layer the deferred weight-gradient rows ([x, h], d gates); the
+// inputs' gradient is not needed (known inputs).
+std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
+    const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
+    const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
+  const int64_t L = static_cast<int64_t>(seq->layers.size());
+  TensorList dh0(L), dc0(L), xh_rows(L), dg_rows(L);
+  Tensor g_out = g_out_top.has_value() ? *g_out_top : Tensor();
+  for (int64_t k = L - 1; k >= 0; --k) {
+    const auto& lay = seq->layers[k];
+    const int64_t K = lay.x.size(0), B = lay.x.size(1), n = lay.x.size(2), I = lay.x.size(3);
+    const int64_t H = lay.h0.size(-1);
+    auto w_hT = seq->ws[k].narrow(1, I, H).transpose(1, 2).contiguous();
+    Tensor dh_rec = g_h[k].has_value() ? *g_h[k] : at::zeros_like(lay.h0);
+    Tensor dc = g_c[k].has_value() ? *g_c[k] : at::zeros_like(lay.h0);
+    TensorList dgs(n);
+    for (int64_t t = n - 1; t >= 0; --t) {
+      auto dh = g_out.defined() ? dh_rec + g_out.select(2, t) : dh_rec;
+      dc = at::addcmul(dc, lay.o_dt[t], dh);
+      auto dgates = at::cat({dc, dc, dh, dc}, -1).mul_(lay.gd[t]);
+      dgs[t] = dgates;
+      dc = dc * lay.f[t];
+      dh_rec = at::bmm(dgates, w_hT);
+    }
+    auto dg = at::stack(dgs, 2).view({K, B * n, 4 * H});
+    auto h_prev = at::cat({lay.h0.unsqueeze(2), lay.out.narrow(2, 0, n - 1)}, 2).reshape({K, B * n, H});
+    xh_rows[k] = at::cat({lay.x.reshape({K, B * n, I}), h_prev}, -1);
+    dg_rows[k] = dg;
+    if (k > 0) g_out = at::bmm(dg, seq->ws[k].narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
+    dh0[k] = dh_rec;
+    dc0[k] = dc;
+  }
+  return {dh0, dc0, xh_rows, dg_rows};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   pybind11::class_<Segment, std::shared_ptr<Segment>>(module, "Segment");
   module.def("segment_forward", &segment_forward, "self-fed segment, forward");
   module.def("segment_backward", &segment_backward, "self-fed segment, backward");
+  pybind11::class_<Sequence, std::shared_ptr<Sequence>>(module, "Sequence");
+  module.def("sequence_forward", &sequence_forward, "known inputs through the stack, forward");
+  module.def("sequence_backward", &sequence_backward, "known inputs through the stack, backward");
 }
