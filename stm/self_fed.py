@@ -6,8 +6,8 @@ ATen calls forward and backward, each paying Python's per-op cost. `cpp_steps` g
 node per run of self-fed steps instead, whose forward and backward are the same ATen calls issued from C++; and
 one per ground-truth chunk between them, a layer sequence in C++ (oneDNN's fused layer, which the Python path
 calls for one model, pays more set-up than five steps cost; the Python layer sequence, for a pack, pays Python's
-per-op cost). The LSTM weights' gradient stays deferred (the nodes hand their ([x, h], d gates) rows to the
-stepper's DeferredGrads); the feedback head's is one product per segment.
+per-op cost). Weight gradients are one product per layer and chunk (or segment), handed to autograd, which sums
+them; deferring all rows to one product after the unroll, as the Python steps do, would copy every row once more.
 
 TrainConfig.step_kernel = "cpp" selects it where it applies: an MDN head feeding back component_mean or a
 deterministic head; phi fed back free, or grounded where the task's phi is the tip plus a function of psi
@@ -22,7 +22,6 @@ import torch
 from stm.config import TrainConfig
 from stm.cpp_ext import self_fed_extension
 from stm.fk import TipKinematics
-from stm.lstm_step import DeferredGrads
 from stm.packed import PackView
 
 JOINTS = 7
@@ -43,6 +42,11 @@ def _phi_offset(task, psi: torch.Tensor, dtype: torch.dtype) -> torch.Tensor | N
         return None
     probe = torch.linspace(-0.7, 0.9, 3, dtype=dtype).expand_as(zero)
     return off if torch.equal(task.phi(probe, psi), probe + off) else None
+
+
+def _interleave(dw: list[torch.Tensor], db: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Per-layer weight and bias gradients in the stepper's order (w_0, b_0, w_1, ...)."""
+    return [g for pair in zip(dw, db, strict=True) for g in pair]
 
 
 class _Constants:
@@ -66,13 +70,13 @@ class _Segment(torch.autograd.Function):
     hidden states (K, B, n, H) and the per-layer h, c after the last step."""
 
     @staticmethod
-    def forward(ctx, consts: _Constants, store: DeferredGrads, q0, psi, offset, w_fb, b_fb, *hc_wb):
+    def forward(ctx, consts: _Constants, q0, psi, offset, w_fb, b_fb, *hc_wb):
         L = consts.layers
         h, c, wb = list(hc_wb[:L]), list(hc_wb[L: 2 * L]), hc_wb[2 * L:]
         block, h, c, seg = self_fed_extension().segment_forward(
             h, c, list(wb[0::2]), list(wb[1::2]), w_fb, b_fb, q0, psi, offset, consts.mean, consts.lower,
             consts.upper, consts.fk, consts.ints)
-        ctx.seg, ctx.store = seg, store
+        ctx.seg = seg
         ctx.set_materialize_grads(False)
         return (block, *h, *c)
 
@@ -80,13 +84,10 @@ class _Segment(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_block, *g_hc):
         L = len(g_hc) // 2
-        dh, dc, dw_fb, db_fb, xh, dg = self_fed_extension().segment_backward(ctx.seg, g_block, list(g_hc[:L]),
+        dh, dc, dw_fb, db_fb, dw, db = self_fed_extension().segment_backward(ctx.seg, g_block, list(g_hc[:L]),
                                                                               list(g_hc[L:]))
         ctx.seg = None
-        for k in range(L):  # the rows of the deferred weight gradient, as the Python steps leave them
-            ctx.store.xh[k].append(xh[k])
-            ctx.store.dgates[k].append(dg[k])
-        return (None, None, None, None, None, dw_fb, db_fb, *dh, *dc) + (None,) * (2 * L)
+        return (None, None, None, None, dw_fb, db_fb, *dh, *dc, *_interleave(dw, db))
 
 
 class _Sequence(torch.autograd.Function):
@@ -94,10 +95,10 @@ class _Sequence(torch.autograd.Function):
     the per-layer h, c after the last step. The inputs get no gradient (ground truth)."""
 
     @staticmethod
-    def forward(ctx, layers: int, store: DeferredGrads, x, *hc_wb):
+    def forward(ctx, layers: int, x, *hc_wb):
         h, c, wb = list(hc_wb[:layers]), list(hc_wb[layers: 2 * layers]), hc_wb[2 * layers:]
         out, h, c, seq = self_fed_extension().sequence_forward(x, h, c, list(wb[0::2]), list(wb[1::2]))
-        ctx.seq, ctx.store = seq, store
+        ctx.seq = seq
         ctx.set_materialize_grads(False)
         return (out, *h, *c)
 
@@ -105,17 +106,14 @@ class _Sequence(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_out, *g_hc):
         L = len(g_hc) // 2
-        dh, dc, xh, dg = self_fed_extension().sequence_backward(ctx.seq, g_out, list(g_hc[:L]), list(g_hc[L:]))
+        dh, dc, dw, db = self_fed_extension().sequence_backward(ctx.seq, g_out, list(g_hc[:L]), list(g_hc[L:]))
         ctx.seq = None
-        for k in range(L):
-            ctx.store.xh[k].append(xh[k])
-            ctx.store.dgates[k].append(dg[k])
-        return (None, None, None, *dh, *dc) + (None,) * (2 * L)
+        return (None, None, *dh, *dc, *_interleave(dw, db))
 
 
 class CppSteps:
     """An unroll's steps after the first chunk in C++: `known` runs ground-truth chunks, `self_fed` self-fed
-    segments; both on the unroll's stepper's weights, their weight gradients deferred to its store."""
+    segments; both on the unroll's stepper's weights (w (K, I + H, 4H) with the gate columns i, f, o, 2g)."""
 
     def __init__(self, consts: _Constants, stepper, psi: torch.Tensor, offset: torch.Tensor, w_fb, b_fb):
         self.consts, self.stepper, self.psi, self.offset = consts, stepper, psi, offset
@@ -129,12 +127,12 @@ class CppSteps:
     def known(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]):
         """Centred known inputs (K, B, n, D) from per-layer h, c -> (top hidden states (K, B, n, H), h, c)."""
         st = self.stepper
-        return self._split(_Sequence.apply(self.layers, st.store, x, *h, *c, *st.wb))
+        return self._split(_Sequence.apply(self.layers, x, *h, *c, *st.wb))
 
     def self_fed(self, h: list[torch.Tensor], c: list[torch.Tensor], q0: torch.Tensor, t: int, n: int):
         """n self-fed steps from input step t, q (K, B, 7) before them -> (top hidden states (K, B, n, H), h, c)."""
         st = self.stepper
-        return self._split(_Segment.apply(self.consts, st.store, q0, self.psi[:, :, t: t + n],
+        return self._split(_Segment.apply(self.consts, q0, self.psi[:, :, t: t + n],
                                           self.offset[:, :, t: t + n], self.w_fb, self.b_fb, *h, *c, *st.wb))
 
 

@@ -6,8 +6,8 @@
 // several microseconds of binding and autograd bookkeeping, more than its arithmetic at these sizes. Here the
 // same ATen calls run in the same order on the same shapes, so the forward is bitwise that of the Python path
 // (stm.lstm_step, stm.fk, stm.model.feedback_state) and the backward differs only in the order in which a few
-// gradient contributions are summed. The weight gradient stays deferred as in the Python path: the backward
-// hands back each layer's ([x, h], d gates) rows for one matmul per layer after the whole unroll.
+// gradient contributions are summed. The weight gradient is not computed per step: one product per layer and
+// chunk of steps (`weight_gradient`).
 //
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate
 // columns i, f, o, 2g; b (K, 1, 4H); the feedback head w_fb (K, H, O), b_fb (K, 1, O).
@@ -59,6 +59,14 @@ std::pair<Tensor, Tensor> tip_kinematics(const Tensor& q, const TensorList& fk, 
   auto entries = at::mm(mono.view({N * slots, monomials}), coef);
   auto out = at::mm(entries.narrow(1, 0, 12) * entries.narrow(1, 12, 12), row_sums).view({N, slots, 3});
   return {out.select(1, 0), out.narrow(1, 1, slots - 1)};
+}
+
+// A layer's weight gradient from the rows ([x, h] (K, N, I + H), d gates (K, N, 4H)) of a chunk of steps: one
+// product per chunk, handed to autograd, which sums the chunks'. (Deferring all rows to one product after the
+// unroll, as the Python steps do, would copy every row once more into one tensor: as much time as it saves.)
+void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db) {
+  dw = at::bmm(xh.transpose(1, 2), dg);
+  db = dg.sum(1, true);
 }
 
 // One step of the stack, bottom layer first (stm.lstm_step._stack_forward, op for op).
@@ -179,7 +187,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
 
 // Gradients of the segment's inputs from those of its outputs (undefined where none reached them):
 // d h, d c per layer (of the state before the segment), d w_fb, d b_fb (undefined with detached feedback),
-// and per layer the deferred weight-gradient rows: [x, h] and d gates of every step, last step first.
+// and d w, d b per layer.
 std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segment_backward(
     const std::shared_ptr<Segment>& seg, const c10::optional<Tensor>& g_block,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
@@ -234,18 +242,15 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
     h_in.push_back(st.h_top_in);
     d_out.push_back(dout);
   }
-  TensorList xh_out, dg_out;
-  for (int64_t k = 0; k < L; ++k) {
-    xh_out.push_back(at::cat(xh_rows[k], -2));
-    dg_out.push_back(at::cat(dg_rows[k], -2));
-  }
+  TensorList dw(L), db(L);
+  for (int64_t k = 0; k < L; ++k) weight_gradient(at::cat(xh_rows[k], -2), at::cat(dg_rows[k], -2), dw[k], db[k]);
   Tensor dw_fb, db_fb;
   if (!seg->detach) {  // one product for all the segment's steps
     auto douts = at::cat(d_out, 1);
     dw_fb = at::bmm(at::cat(h_in, 1).transpose(1, 2), douts);
     db_fb = douts.sum(1, true);
   }
-  return {gh, gc, dw_fb, db_fb, xh_out, dg_out};
+  return {gh, gc, dw_fb, db_fb, dw, db};
 }
 
 // Known inputs (ground truth) through the stack, n steps: layer by layer, the input projection of all steps as one
@@ -301,13 +306,12 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_f
   return {x, h, c, seq};
 }
 
-// Gradients of the initial h, c per layer; per layer the deferred weight-gradient rows ([x, h], d gates); the
-// inputs' gradient is not needed (known inputs).
+// Gradients of the initial h, c and of w, b per layer; the inputs' gradient is not needed (known inputs).
 std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
   const int64_t L = static_cast<int64_t>(seq->layers.size());
-  TensorList dh0(L), dc0(L), xh_rows(L), dg_rows(L);
+  TensorList dh0(L), dc0(L), dw(L), db(L);
   Tensor g_out = g_out_top.has_value() ? *g_out_top : Tensor();
   for (int64_t k = L - 1; k >= 0; --k) {
     const auto& lay = seq->layers[k];
@@ -327,13 +331,12 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     }
     auto dg = at::stack(dgs, 2).view({K, B * n, 4 * H});
     auto h_prev = at::cat({lay.h0.unsqueeze(2), lay.out.narrow(2, 0, n - 1)}, 2).reshape({K, B * n, H});
-    xh_rows[k] = at::cat({lay.x.reshape({K, B * n, I}), h_prev}, -1);
-    dg_rows[k] = dg;
+    weight_gradient(at::cat({lay.x.reshape({K, B * n, I}), h_prev}, -1), dg, dw[k], db[k]);
     if (k > 0) g_out = at::bmm(dg, seq->ws[k].narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
     dh0[k] = dh_rec;
     dc0[k] = dc;
   }
-  return {dh0, dc0, xh_rows, dg_rows};
+  return {dh0, dc0, dw, db};
 }
 
 }  // namespace
