@@ -49,7 +49,7 @@ def self_fed_extension():
         if shutil.which(compiler) is None:
             raise RuntimeError(f"no C++ compiler ({compiler}) on PATH")
         start = time.perf_counter()
-        ext = cpp_extension.load(NAME, [str(SOURCE)], extra_cflags=["-O2"], verbose=False)
+        ext = cpp_extension.load(NAME, [str(SOURCE)], extra_cflags=["-O3"], verbose=False)
         build_seconds = time.perf_counter() - start
         log.info("C++ step kernel ready in %.1f s (built or loaded from %s)", build_seconds,
                  cpp_extension._get_build_directory(NAME, verbose=False))

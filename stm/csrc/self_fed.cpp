@@ -24,7 +24,7 @@ namespace {
 constexpr int64_t JOINTS = 7;
 
 struct Layer {
-  Tensor xh, gd, o_dt, f;  // the step's [x, h] and local derivatives (stm.lstm_step._stack_forward)
+  Tensor xh, gd, o_dt, sig;  // the step's [x, h], local derivatives (stm.lstm_step._stack_forward), gate sigmoids
 };
 
 struct Step {
@@ -69,23 +69,122 @@ void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db)
   db = dg.sum(1, true);
 }
 
-// One step of the stack, bottom layer first (stm.lstm_step._stack_forward, op for op).
+// The LSTM cell's elementwise maths in plain loops, one pass before ATen's tanh and one after, instead of a
+// dozen ATen calls: the same arithmetic, operation for operation, as those calls of stm.lstm_step (addcmul(a, b,
+// c, value) is a + value * b * c), so the results are those of the Python steps. sig (R, 4H) holds the gate
+// sigmoids i, f, o and sigmoid(2 g_pre), so that g = 2 s - 1; rows R = K * B, all contiguous.
+template <typename T>
+void cell_pass1(const T* sig, const T* c, T* c_new, int64_t R, int64_t H) {
+  for (int64_t r = 0; r < R; ++r) {
+    const T* s = sig + r * 4 * H;
+    const T* cr = c + r * H;
+    T* cn = c_new + r * H;
+    for (int64_t j = 0; j < H; ++j) cn[j] = s[H + j] * cr[j] + s[j] * (s[3 * H + j] * T(2) - T(1));
+  }
+}
+
+// h = o tanh(c'); gd = [g, c, tanh(c'), 2 i] * s (1 - s) (the local derivatives of the pre-activations);
+// o_dt = o (1 - tanh(c')^2).
+template <typename T>
+void cell_pass2(const T* sig, const T* c, const T* tc, T* h, T* gd, T* o_dt, int64_t R, int64_t H) {
+  for (int64_t r = 0; r < R; ++r) {
+    const T* s = sig + r * 4 * H;
+    const T* cr = c + r * H;
+    const T* tr = tc + r * H;
+    T* hr = h + r * H;
+    T* od = o_dt + r * H;
+    T* d = gd + r * 4 * H;
+    for (int64_t j = 0; j < H; ++j) {
+      const T si = s[j], sf = s[H + j], so = s[2 * H + j], sg = s[3 * H + j];
+      const T hv = so * tr[j];
+      hr[j] = hv;
+      od[j] = so + (-hv) * tr[j];
+      d[j] = (sg * T(2) - T(1)) * (si + (-si) * si);
+      d[H + j] = cr[j] * (sf + (-sf) * sf);
+      d[2 * H + j] = tr[j] * (so + (-so) * so);
+      d[3 * H + j] = (si * T(2)) * (sg + (-sg) * sg);
+    }
+  }
+}
+
+// dc = gc + o_dt dh (o_dt dh without gc); d gates = [dc, dc, dh, dc] * gd; the cell state's gradient dc f.
+template <typename T>
+void cell_backward_loop(const T* sig, const T* gd, const T* o_dt, const T* dh, const T* gc, T* dgates, T* grad_c,
+                        int64_t R, int64_t H) {
+  for (int64_t r = 0; r < R; ++r) {
+    const T* s = sig + r * 4 * H;
+    const T* d = gd + r * 4 * H;
+    const T* od = o_dt + r * H;
+    const T* dhr = dh + r * H;
+    T* dg = dgates + r * 4 * H;
+    T* gcr = grad_c + r * H;
+    if (gc != nullptr) {
+      const T* gcin = gc + r * H;
+      for (int64_t j = 0; j < H; ++j) {
+        const T dc = gcin[j] + od[j] * dhr[j];
+        dg[j] = dc * d[j];
+        dg[H + j] = dc * d[H + j];
+        dg[2 * H + j] = dhr[j] * d[2 * H + j];
+        dg[3 * H + j] = dc * d[3 * H + j];
+        gcr[j] = dc * s[H + j];
+      }
+    } else {
+      for (int64_t j = 0; j < H; ++j) {
+        const T dc = od[j] * dhr[j];
+        dg[j] = dc * d[j];
+        dg[H + j] = dc * d[H + j];
+        dg[2 * H + j] = dhr[j] * d[2 * H + j];
+        dg[3 * H + j] = dc * d[3 * H + j];
+        gcr[j] = dc * s[H + j];
+      }
+    }
+  }
+}
+
+// One cell forward from the gate sigmoids: h', c', and the saved gd, o_dt (sig is saved too: f).
+void cell_forward(const Tensor& sig, const Tensor& c_in, Tensor& h, Tensor& c_new, Tensor& gd, Tensor& o_dt) {
+  const auto c = c_in.contiguous();
+  const int64_t H = c.size(-1), R = c.numel() / H;
+  c_new = at::empty_like(c);
+  AT_DISPATCH_FLOATING_TYPES(sig.scalar_type(), "cell_pass1", [&] {
+    cell_pass1<scalar_t>(sig.data_ptr<scalar_t>(), c.data_ptr<scalar_t>(), c_new.data_ptr<scalar_t>(), R, H);
+  });
+  const auto tc = at::tanh(c_new);
+  h = at::empty_like(c);
+  o_dt = at::empty_like(c);
+  gd = at::empty_like(sig);
+  AT_DISPATCH_FLOATING_TYPES(sig.scalar_type(), "cell_pass2", [&] {
+    cell_pass2<scalar_t>(sig.data_ptr<scalar_t>(), c.data_ptr<scalar_t>(), tc.data_ptr<scalar_t>(),
+                         h.data_ptr<scalar_t>(), gd.data_ptr<scalar_t>(), o_dt.data_ptr<scalar_t>(), R, H);
+  });
+}
+
+// One cell backward: d gates (K, B, 4H) and the gradient of the previous cell state, from dh (defined) and gc.
+std::pair<Tensor, Tensor> cell_backward(const Tensor& sig, const Tensor& gd, const Tensor& o_dt, const Tensor& dh_in,
+                                        const Tensor& gc_in) {
+  const auto dh = dh_in.contiguous();
+  const Tensor gc = gc_in.defined() ? gc_in.contiguous() : Tensor();
+  const int64_t H = o_dt.size(-1), R = o_dt.numel() / H;
+  auto dgates = at::empty_like(sig);
+  auto grad_c = at::empty_like(o_dt);
+  AT_DISPATCH_FLOATING_TYPES(sig.scalar_type(), "cell_backward", [&] {
+    cell_backward_loop<scalar_t>(sig.data_ptr<scalar_t>(), gd.data_ptr<scalar_t>(), o_dt.data_ptr<scalar_t>(),
+                                 dh.data_ptr<scalar_t>(), gc.defined() ? gc.data_ptr<scalar_t>() : nullptr,
+                                 dgates.data_ptr<scalar_t>(), grad_c.data_ptr<scalar_t>(), R, H);
+  });
+  return {dgates, grad_c};
+}
+
+// One step of the stack, bottom layer first (stm.lstm_step._stack_forward).
 Tensor stack_forward(Tensor inp, TensorList& h, TensorList& c, const TensorList& ws, const TensorList& bs,
                      std::vector<Layer>& saved) {
-  const int64_t H = h[0].size(-1);
   for (size_t k = 0; k < h.size(); ++k) {
     auto xh = at::cat({inp, h[k]}, -1);
-    auto sig = at::sigmoid(at::baddbmm(bs[k], xh, ws[k]));
-    auto i = sig.narrow(-1, 0, H);
-    auto f = sig.narrow(-1, H, H);
-    auto o = sig.narrow(-1, 2 * H, H);
-    auto g = at::sub(at::mul(sig.narrow(-1, 3 * H, H), 2.0), 1.0);
-    auto c_new = at::addcmul(f * c[k], i, g);
-    auto tc = at::tanh(c_new);
-    inp = o * tc;
-    auto gd = at::cat({g, c[k], tc, at::mul(i, 2.0)}, -1) * at::addcmul(sig, sig, sig, -1.0);
-    auto o_dt = at::addcmul(o, inp, tc, -1.0);
-    saved.push_back({xh, gd, o_dt, f});
+    auto sig = at::baddbmm(bs[k], xh, ws[k]);
+    sig.sigmoid_();
+    Tensor c_new, gd, o_dt;
+    cell_forward(sig, c[k], inp, c_new, gd, o_dt);
+    saved.push_back({xh, gd, o_dt, sig});
     h[k] = inp;
     c[k] = c_new;
   }
@@ -102,14 +201,14 @@ Tensor stack_backward(TensorList& gh, TensorList& gc, const TensorList& ws, cons
     const auto& s = saved[k];
     Tensor dh;
     if (!gh[k].defined()) {
-      dh = below.defined() ? below : at::zeros_like(s.f);
+      dh = below.defined() ? below : at::zeros_like(s.o_dt);
     } else {
       dh = below.defined() ? gh[k] + below : gh[k];
     }
-    Tensor dc = gc[k].defined() ? at::addcmul(gc[k], s.o_dt, dh) : s.o_dt * dh;
-    auto dgates = at::cat({dc, dc, dh, dc}, -1).mul_(s.gd);
-    gc[k] = dc * s.f;
-    const int64_t H = s.f.size(-1);
+    auto dg_gc = cell_backward(s.sig, s.gd, s.o_dt, dh, gc[k]);
+    const auto& dgates = dg_gc.first;
+    gc[k] = dg_gc.second;
+    const int64_t H = s.o_dt.size(-1);
     const int64_t d_in = s.xh.size(-1) - H;
     if (k > 0 || need_x) {
       auto dxh = at::matmul(dgates, ws[k].transpose(-2, -1));
@@ -258,7 +357,7 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
 // self-fed segments this beats oneDNN's fused layer, whose set-up costs more than its five steps.
 struct SeqLayer {
   Tensor x, h0, out;             // input (K, B, n, I), initial h, outputs (K, B, n, H)
-  TensorList gd, o_dt, f;        // per step
+  TensorList gd, o_dt, sig;      // per step
 };
 
 struct Sequence {
@@ -282,17 +381,13 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_f
     Tensor hk = h[k], ck = c[k];
     TensorList hs;
     for (int64_t t = 0; t < n; ++t) {
-      auto sig = at::sigmoid(at::baddbmm(proj.select(2, t), hk, w_h));
-      auto i = sig.narrow(-1, 0, H);
-      auto f = sig.narrow(-1, H, H);
-      auto o = sig.narrow(-1, 2 * H, H);
-      auto g = at::sub(at::mul(sig.narrow(-1, 3 * H, H), 2.0), 1.0);
-      auto c_new = at::addcmul(f * ck, i, g);
-      auto tc = at::tanh(c_new);
-      auto h_new = o * tc;
-      lay.gd.push_back(at::cat({g, ck, tc, at::mul(i, 2.0)}, -1) * at::addcmul(sig, sig, sig, -1.0));
-      lay.o_dt.push_back(at::addcmul(o, h_new, tc, -1.0));
-      lay.f.push_back(f);
+      auto sig = at::baddbmm(proj.select(2, t), hk, w_h);
+      sig.sigmoid_();
+      Tensor h_new, c_new, gd, o_dt;
+      cell_forward(sig, ck, h_new, c_new, gd, o_dt);
+      lay.gd.push_back(gd);
+      lay.o_dt.push_back(o_dt);
+      lay.sig.push_back(sig);
       hs.push_back(h_new);
       hk = h_new;
       ck = c_new;
@@ -323,11 +418,10 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     TensorList dgs(n);
     for (int64_t t = n - 1; t >= 0; --t) {
       auto dh = g_out.defined() ? dh_rec + g_out.select(2, t) : dh_rec;
-      dc = at::addcmul(dc, lay.o_dt[t], dh);
-      auto dgates = at::cat({dc, dc, dh, dc}, -1).mul_(lay.gd[t]);
-      dgs[t] = dgates;
-      dc = dc * lay.f[t];
-      dh_rec = at::bmm(dgates, w_hT);
+      auto dg_gc = cell_backward(lay.sig[t], lay.gd[t], lay.o_dt[t], dh, dc);
+      dgs[t] = dg_gc.first;
+      dc = dg_gc.second;
+      dh_rec = at::bmm(dg_gc.first, w_hT);
     }
     auto dg = at::stack(dgs, 2).view({K, B * n, 4 * H});
     auto h_prev = at::cat({lay.h0.unsqueeze(2), lay.out.narrow(2, 0, n - 1)}, 2).reshape({K, B * n, H});
