@@ -19,7 +19,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-SOURCE = Path(__file__).parent / "csrc" / "self_fed.cpp"
+SOURCES = [Path(__file__).parent / "csrc" / name for name in ("self_fed.cpp", "lstm_cell.cpp")]
 NAME = "stm_self_fed"
 build_seconds: float | None = None  # how long the last load took (a first build: about a minute on two cores)
 
@@ -38,7 +38,9 @@ def _find_ninja() -> None:
 
 @functools.cache
 def self_fed_extension():
-    """The compiled module (segment_forward, segment_backward), or None (one warning) where it cannot be built."""
+    """The compiled module (segment_* and sequence_* forward and backward), or None (one warning) where it cannot
+    be built. A first build takes about a minute on two cores (logged at INFO with the load time, kept in
+    `build_seconds`); later processes load the cached build in well under a second."""
     global build_seconds
     try:
         from torch.utils import cpp_extension
@@ -49,12 +51,11 @@ def self_fed_extension():
         if shutil.which(compiler) is None:
             raise RuntimeError(f"no C++ compiler ({compiler}) on PATH")
         start = time.perf_counter()
-        ext = cpp_extension.load(NAME, [str(SOURCE)], extra_cflags=["-O3"], verbose=False)
-        build_seconds = time.perf_counter() - start
-        log.info("C++ step kernel ready in %.1f s (built or loaded from %s)", build_seconds,
-                 cpp_extension._get_build_directory(NAME, verbose=False))
-        return ext
+        ext = cpp_extension.load(NAME, [str(p) for p in SOURCES], extra_cflags=["-O3"], verbose=False)
     except Exception as exc:  # a missing toolchain or a failed build: the Python path computes the same
         warnings.warn(f"the C++ step kernel is unavailable ({type(exc).__name__}: {exc}); using the Python step",
                       RuntimeWarning, stacklevel=2)
         return None
+    build_seconds = time.perf_counter() - start
+    log.info("C++ step kernel ready in %.1f s (built, or loaded from %s)", build_seconds, ext.__file__)
+    return ext

@@ -145,6 +145,8 @@ def cpp_steps(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.T
     grounded = cfg.phi_mode == "grounded"
     if grounded and not isinstance(kin, TipKinematics):
         return None
+    if stepper.wb[0].dtype not in (torch.float32, torch.float64):  # the C++ cell loops: float and double
+        return None
     dtype = view.state_mean.dtype
     offset = _phi_offset(task, psi, dtype) if grounded else psi.new_zeros(*psi.shape[:-1], 3)
     if offset is None or self_fed_extension() is None:
