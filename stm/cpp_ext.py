@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 SOURCES = [Path(__file__).parent / "csrc" / name for name in ("self_fed.cpp", "lstm_cell.cpp")]
 NAME = "stm_self_fed"
-build_seconds: float | None = None  # how long the last load took (a first build: about a minute on two cores)
+load_seconds: float | None = None  # how long loading took in this process (a first build: about a minute)
 
 
 def _find_ninja() -> None:
@@ -40,8 +40,8 @@ def _find_ninja() -> None:
 def self_fed_extension():
     """The compiled module (segment_* and sequence_* forward and backward), or None (one warning) where it cannot
     be built. A first build takes about a minute on two cores (logged at INFO with the load time, kept in
-    `build_seconds`); later processes load the cached build in well under a second."""
-    global build_seconds
+    `load_seconds`); later processes load the cached build in well under a second."""
+    global load_seconds
     try:
         from torch.utils import cpp_extension
 
@@ -56,6 +56,6 @@ def self_fed_extension():
         warnings.warn(f"the C++ step kernel is unavailable ({type(exc).__name__}: {exc}); using the Python step",
                       RuntimeWarning, stacklevel=2)
         return None
-    build_seconds = time.perf_counter() - start
-    log.info("C++ step kernel ready in %.1f s (built, or loaded from %s)", build_seconds, ext.__file__)
+    load_seconds = time.perf_counter() - start
+    log.info("C++ step kernel ready in %.1f s (built, or loaded from %s)", load_seconds, ext.__file__)
     return ext

@@ -140,7 +140,7 @@ def cpp_steps(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.T
               return_inputs: bool = False) -> CppSteps | None:
     """The C++ steps for an unroll (psi (K, B, T+1, P): the unroll's); None where the Python steps must run (see
     the module docstring)."""
-    if not supported(view, cfg, return_inputs):
+    if not supported(view, cfg, return_inputs) or self_fed_extension() is None:
         return None
     grounded = cfg.phi_mode == "grounded"
     if grounded and not isinstance(kin, TipKinematics):
@@ -149,7 +149,7 @@ def cpp_steps(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.T
         return None
     dtype = view.state_mean.dtype
     offset = _phi_offset(task, psi, dtype) if grounded else psi.new_zeros(*psi.shape[:-1], 3)
-    if offset is None or self_fed_extension() is None:
+    if offset is None:
         return None
     consts = _Constants(view, task, kin, cfg, stepper.layers)
     w_fb, b_fb = view.feedback_weights(cfg.feedback, consts.dims)

@@ -157,3 +157,30 @@ def test_training_with_the_cpp_kernel_matches(toy, variant):
         for p, r in zip(packed, ref_packed, strict=True):
             for key, w in r.model.state_dict().items():
                 torch.testing.assert_close(p.model.state_dict()[key], w, rtol=0, atol=WEIGHT_TOL)
+
+
+def test_a_failed_build_warns_once_and_the_python_steps_run(toy, monkeypatch):
+    import warnings
+
+    from torch.utils import cpp_extension
+
+    from stm import cpp_ext
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(cpp_extension, "load", fail)
+    cpp_ext.self_fed_extension.cache_clear()
+    try:
+        with pytest.warns(RuntimeWarning, match="no compiler here"):
+            assert cpp_ext.self_fed_extension() is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert cpp_ext.self_fed_extension() is None  # once
+        task, data = toy
+        pack = _pack(task, data, ModelConfig(hidden_size=8, mixtures=2), "grounded", 1)
+        monkeypatch.setattr(self_fed, "self_fed_extension", cpp_ext.self_fed_extension)
+        assert self_fed.cpp_steps(pack.view(), TrainConfig(step_kernel="cpp"), task, KIN, None,
+                                  data.batch(torch.arange(2)).psi.unsqueeze(0)) is None
+    finally:
+        cpp_ext.self_fed_extension.cache_clear()
