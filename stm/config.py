@@ -23,6 +23,7 @@ STRICT = ConfigDict(strict=True, extra="forbid")  # shared by every config datac
 Head = Literal["mdn", "deterministic"]
 Feedback = Literal["sample", "component_mean", "mixture_mean"]  # what an MDN's output feeds back
 PhiMode = Literal["grounded", "free"]
+StepKernel = Literal["python", "cpp"]  # the self-fed steps: Python ATen calls, or one C++ op per segment
 HEADS: tuple[str, ...] = get_args(Head)
 FEEDBACKS: tuple[str, ...] = get_args(Feedback)
 PHI_MODES: tuple[str, ...] = get_args(PhiMode)
@@ -72,7 +73,7 @@ class ModelConfig(_Config):
 class TrainConfig(_Config):
     """Optimisation and the auto-conditioning schedule."""
 
-    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0}
+    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0, "step_kernel": "python"}
 
     iters: NonNegativeInt = 2000  # optimizer steps
     batch_size: PositiveInt = 32  # demonstrations per step (sampled without replacement when possible)
@@ -90,6 +91,9 @@ class TrainConfig(_Config):
     # steps of a demo trained per sample (0: the whole demo; stm.training.windows; not in the paper)
     window: NonNegativeInt = 0
     burn_in: NonNegativeInt = 0  # with window: ground-truth steps before it that warm the state, no gradient
+    # "cpp": the self-fed steps as one C++ op per segment (stm.self_fed; same maths, falls back to "python" where
+    # it does not apply or cannot be built)
+    step_kernel: StepKernel = "python"
     checkpoint_every: NonNegativeInt = 500  # iterations between checkpoints (0: only at the end)
     log_every: NonNegativeInt = 10  # iterations between on_metrics calls
     val_every: NonNegativeInt = 0  # iterations between validations (0: never)

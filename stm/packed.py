@@ -116,20 +116,31 @@ class PackView:
         m = mask.to(per_step.dtype)
         return (per_step * m).sum((1, 2)) / m.sum((1, 2)).clamp_min(1.0)
 
-    def feedback_predictor(self, mode: str, dims: int):
-        """As STM.feedback_predictor, for all K models: (K, B, H) -> (K, B, dims) raw units."""
+    def feedback_weights(self, mode: str, dims: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The head rows the feedback reads, with the denormalisation folded in: (w (K, H, O), b (K, 1, O)),
+        O = dims (deterministic head) or m + m * dims (the mixture logits, then the first `dims` mean coordinates
+        per component; no sigmas). None where that does not apply (sampling needs the sigmas)."""
         std, mean = self.state_std[:dims], self.state_mean[:dims]
         w, b = self.head_w, self.head_b
         if not self.is_mdn:
-            w_fb, b_fb = (w[:, :dims] * std[:, None]).transpose(1, 2), torch.addcmul(mean, b[:, :dims], std)
-            return lambda h: torch.baddbmm(b_fb.unsqueeze(1), h, w_fb)
+            return (w[:, :dims] * std[:, None]).transpose(1, 2), torch.addcmul(mean, b[:, :dims], std).unsqueeze(1)
         if mode not in ("component_mean", "mixture_mean"):
             return None
         m, D = self.config.mixtures, self.dim
         w_mu = w[:, 2 * m:].unflatten(1, (m, D))[:, :, :dims] * std[:, None]  # (K, m, dims, H)
         b_mu = torch.addcmul(mean, b[:, 2 * m:].unflatten(1, (m, D))[:, :, :dims], std)
         w_fb = torch.cat([w[:, :m], w_mu.flatten(1, 2)], 1).transpose(1, 2)  # (K, H, m + m * dims)
-        b_fb = torch.cat([b[:, :m], b_mu.flatten(1)], 1).unsqueeze(1)
+        return w_fb, torch.cat([b[:, :m], b_mu.flatten(1)], 1).unsqueeze(1)
+
+    def feedback_predictor(self, mode: str, dims: int):
+        """As STM.feedback_predictor, for all K models: (K, B, H) -> (K, B, dims) raw units."""
+        wb = self.feedback_weights(mode, dims)
+        if wb is None:
+            return None
+        w_fb, b_fb = wb
+        if not self.is_mdn:
+            return lambda h: torch.baddbmm(b_fb, h, w_fb)
+        m = self.config.mixtures
         point = mdn.component_mean if mode == "component_mean" else mdn.mixture_mean
 
         def predict(h: torch.Tensor) -> torch.Tensor:

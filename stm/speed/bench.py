@@ -7,11 +7,11 @@ of one), on a batch at the paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, 
 reacher (3x64, 3 Gaussians, batch 32, 70 steps), with the task's state size.
 Timed in the same run, interleaved round by round (the machine is shared, so
 medians of interleaved rounds give fair ratios): teacher forcing (tf),
-auto-conditioning with u = v = 2 and u = v = 5, and a plain reference (nn.LSTM +
-linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three
-schedules for a pack of K = 3 models trained together (stm.packed): packed_speedup_* =
-(K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the lower of the two
-auto-conditioned schedules'; window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the
+auto-conditioning with u = v = 2 and u = v = 5 (u = v = 5 also with the C++ self-fed
+segment, stm.self_fed: *_cpp), and a plain reference (nn.LSTM + linear MDN head + mixture NLL + Adam with
+clipping, a dozen lines); and the same schedules for a pack of K = 3 models trained together
+(stm.packed): packed_speedup_* = (K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the
+lower of the two auto-conditioned schedules'; window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the
 whole demos over one on windows of 40 steps after a 20-step burn-in (stm.training.windows); matmul_share_ac_u5v5
 is the share of one model's a.c. iteration spent in matrix products (torch.profiler; a lower bound) and
 packed_speedup_ceiling the most a pack of K could then gain (Amdahl: products cost K-fold, the rest
@@ -40,7 +40,7 @@ from torch import nn
 
 from envs.robot import NEUTRAL_Q
 from envs.tasks.base import Demos, Episode, StateLayout, Task
-from stm import mdn
+from stm import cpp_ext, mdn
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
@@ -146,7 +146,8 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK)
     return make
 
 
-FLOOR_CASES = ("tf", "ac_u5v5", "packed_tf", "packed_ac_u5v5")  # timed with their matrix-product floors
+# timed with their matrix-product floors
+FLOOR_CASES = ("tf", "ac_u5v5", "ac_u5v5_cpp", "packed_tf", "packed_ac_u5v5", "packed_ac_u5v5_cpp")
 MATMULS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm"}
 
 
@@ -192,6 +193,7 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
     plain_opt = torch.optim.Adam(plain.parameters(), lr=1e-4)
     x, y = model.normalize(batch.states[:, :-1]), model.normalize(batch.states[:, 1:])
     stm_step = _packed_step(task, stats, model.config, batch, kin, k=1)  # one model: stm.training.loop's pack of one
+    cpp_ext.self_fed_extension()  # built (or loaded) before the timing
 
     def plain_step():
         loss = plain.loss(x, y)
@@ -200,7 +202,8 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         torch.nn.utils.clip_grad_norm_(plain.parameters(), 1.0)  # like for like: the STM step clips too
         plain_opt.step()
 
-    schedules = {"tf": TrainConfig(v=0), "ac_u2v2": TrainConfig(u=2, v=2), "ac_u5v5": TrainConfig(u=5, v=5)}
+    schedules = {"tf": TrainConfig(v=0), "ac_u2v2": TrainConfig(u=2, v=2), "ac_u5v5": TrainConfig(u=5, v=5),
+                 "ac_u5v5_cpp": TrainConfig(u=5, v=5, step_kernel="cpp")}  # the C++ self-fed segment (stm.self_fed)
     packed = _packed_step(task, stats, model.config, batch, kin)
     window, burn_in = WINDOW
     windows = data.windows(torch.arange(spec["batch"]), window, burn_in, torch.Generator().manual_seed(0))
@@ -233,9 +236,15 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "bf16_floor_over_fp32_floor": {k: round(med[f"floor_bf16_{k}"] / med[f"floor_fp32_{k}"], 3)
                                        for k in FLOOR_CASES},
         "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
-        "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "ac_u5v5")},
+        "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "ac_u5v5", "ac_u5v5_cpp")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
+        # step_kernel "cpp" (python where the extension cannot be built: cpp_kernel says which ran)
+        "cpp_kernel": cpp_ext.self_fed_extension() is not None, "cpp_load_seconds": cpp_ext.load_seconds,
+        "ratio_ac_u5v5_cpp_over_tf": round(med["ac_u5v5_cpp"] / med["tf"], 3),
+        "packed_ratio_ac_u5v5_cpp_over_tf": round(med["packed_ac_u5v5_cpp"] / med["packed_tf"], 3),
+        "speedup_cpp_ac_u5v5": round(med["ac_u5v5"] / med["ac_u5v5_cpp"], 3),
+        "speedup_cpp_packed_ac_u5v5": round(med["packed_ac_u5v5"] / med["packed_ac_u5v5_cpp"], 3),
         "ratio_tf_over_plain": round(med["tf"] / med["plain"], 3),
         "packed_k": PACK,
         **{f"packed_speedup_{k}": speedup[k] for k in ("tf", "ac_u2v2", "ac_u5v5")},

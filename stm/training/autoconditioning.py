@@ -27,6 +27,7 @@ from stm.config import TrainConfig
 from stm.model import STM, feedback_state
 from stm.packed import PackView
 from stm.packed_lstm_step import PackedStackStepper, fused_sequence, layer_sequence
+from stm.self_fed import cpp_steps
 from stm.training.windows import burn_in_state
 
 STEPPED_GT_CHUNK = 2  # ground-truth chunks up to this long (after the first) are stepped, not sequence calls
@@ -91,12 +92,15 @@ def unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Ten
     dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
     point = view.feedback_predictor(cfg.feedback, dims)
     predict = (lambda h, _t: point(h)) if point is not None else _sampler(view, cfg, gens, steps)
+    cpp = cpp_steps(view, cfg, task, kin, stepper, psi, return_inputs)  # the steps in C++ (stm.self_fed), or None
     hs: list[torch.Tensor] = []  # top hidden states, chunks (K, B, n, H)
     fed: list[tuple[int, torch.Tensor]] = []  # the self-fed (step, raw state), kept for return_inputs
     t = 0
     for n, k in segments(T, cfg.u, cfg.v):
         from_zero = t == 0 and burn is None  # the first chunk from zero states: a sequence call, however short
-        if n <= STEPPED_GT_CHUNK and not from_zero:
+        if cpp is not None:
+            h, hl, cl = cpp.known(centred[:, :, t: t + n], hl, cl)
+        elif n <= STEPPED_GT_CHUNK and not from_zero:
             block = []
             for j in range(n):
                 hl, cl = stepper(centred[:, :, t + j], hl, cl)
@@ -109,6 +113,11 @@ def unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Ten
         hs.append(h)
         t += n
         if k == 0:
+            continue
+        if cpp is not None:
+            h, hl, cl = cpp.self_fed(hl, cl, q[:, :, t - 1], t, k)
+            hs.append(h)
+            t += k
             continue
         qt, block = q[:, :, t - 1], []
         for _ in range(k):  # self-fed steps

@@ -1,0 +1,61 @@
+"""The project's C++ extension (stm/csrc), built from its own sources on first use and cached.
+
+torch.utils.cpp_extension.load compiles the sources with ninja into the torch extensions folder
+(TORCH_EXTENSIONS_DIR, by default under the user's cache) and, in later processes, only loads what it built
+there (it rebuilds when a source or flag changes; a file lock keeps parallel processes from building twice).
+Where no compiler or ninja is found, or the build fails, `self_fed_extension` warns once and returns None:
+the callers fall back to the pure-PyTorch path, which computes the same.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import shutil
+import time
+import warnings
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+SOURCES = [Path(__file__).parent / "csrc" / name for name in ("self_fed.cpp", "lstm_cell.cpp")]
+NAME = "stm_self_fed"
+load_seconds: float | None = None  # how long loading took in this process (a first build: about a minute)
+
+
+def _find_ninja() -> None:
+    """torch runs `ninja` from PATH; the ninja wheel (a dependency) puts it in the environment's bin, which is on
+    PATH only in an activated environment: add its folder."""
+    if shutil.which("ninja") is None:
+        try:
+            import ninja  # type: ignore[import-untyped]
+
+            os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
+        except ImportError:
+            pass
+
+
+@functools.cache
+def self_fed_extension():
+    """The compiled module (segment_* and sequence_* forward and backward), or None (one warning) where it cannot
+    be built. A first build takes about a minute on two cores (logged at INFO with the load time, kept in
+    `load_seconds`); later processes load the cached build in well under a second."""
+    global load_seconds
+    try:
+        from torch.utils import cpp_extension
+
+        _find_ninja()
+        cpp_extension.verify_ninja_availability()
+        compiler = os.environ.get("CXX", "c++")
+        if shutil.which(compiler) is None:
+            raise RuntimeError(f"no C++ compiler ({compiler}) on PATH")
+        start = time.perf_counter()
+        ext = cpp_extension.load(NAME, [str(p) for p in SOURCES], extra_cflags=["-O3"], verbose=False)
+    except Exception as exc:  # a missing toolchain or a failed build: the Python path computes the same
+        warnings.warn(f"the C++ step kernel is unavailable ({type(exc).__name__}: {exc}); using the Python step",
+                      RuntimeWarning, stacklevel=2)
+        return None
+    load_seconds = time.perf_counter() - start
+    log.info("C++ step kernel ready in %.1f s (built, or loaded from %s)", load_seconds, ext.__file__)
+    return ext

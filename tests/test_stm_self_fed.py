@@ -1,0 +1,187 @@
+"""The C++ self-fed segment (stm.self_fed, TrainConfig.step_kernel = "cpp") against the Python steps it replaces
+(the reference, itself held to a plain step-by-step unroll in tests/test_stm_speed_equivalence.py).
+
+Tolerances: the self-fed steps run the same ATen calls in the same order as the Python steps; the ground-truth
+chunks run as a layer sequence where a single model's Python path calls oneDNN's fused layer, and the backward
+sums a few gradient contributions in another order (the feedback head's weight gradient: one product per segment
+instead of one per step), so results differ by float32 rounding: measured, losses within 1e-7 relative and
+gradients within 4e-7 of each parameter's largest; asserted 1e-6 for both. After N Adam steps the weights
+differ by at most ~N * lr * 1e-6: asserted within 1e-6 after 8 steps at lr 3e-3. The teacher-forced variants
+(lstm, lstm-mdn) have no self-fed steps: both kernels run the same Python code, asserted bitwise equal.
+Skipped where the extension cannot be built (stm.cpp_ext warns and the Python path runs)."""
+
+import dataclasses
+
+import pytest
+import torch
+from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
+
+from stm import self_fed
+from stm.config import ModelConfig, TrainConfig
+from stm.cpp_ext import self_fed_extension
+from stm.fk import default_tip_kinematics
+from stm.model import STM, normalization_stats
+from stm.packed import PackedSTM
+from stm.training import autoconditioning
+from stm.training.autoconditioning import unroll
+from stm.training.batches import DemoTensors
+from stm.training.loop import train, train_packed
+from stm.variants import VARIANTS
+
+KIN = default_tip_kinematics(torch.float32)
+LOSS_RTOL, GRAD_TOL, WEIGHT_TOL = 1e-6, 1e-6, 1e-6
+
+needs_extension = pytest.mark.skipif(self_fed_extension() is None, reason="the C++ extension cannot be built here")
+
+
+@pytest.fixture(scope="module")
+def toy():
+    task = ToyReach(n_demos=6, min_steps=9, max_steps=13, gripper=True)
+    return task, DemoTensors.build(task, task.demos(0))
+
+
+def _pack(task, data, model_cfg: ModelConfig, phi_mode: str, k: int) -> PackedSTM:
+    valid = torch.arange(data.states.shape[1])[None] <= data.lengths[:, None]
+    stats = normalization_stats(data.states, valid)
+    models = []
+    for seed in range(k):
+        torch.manual_seed(seed)
+        models.append(STM(model_cfg, task.layout, *stats, phi_mode=phi_mode))
+    return PackedSTM.from_models(models)
+
+
+def _loss_and_grads(pack: PackedSTM, batch, task, cfg: TrainConfig):
+    K = pack.K
+    states, q, psi, mask = (t.expand(K, *t.shape) for t in (batch.states, batch.q, batch.psi, batch.mask))
+    burn = None if batch.burn is None else tuple(t.expand(K, *t.shape) for t in batch.burn)
+    view = pack.view()
+    gens = [torch.Generator().manual_seed(3 + k) for k in range(K)]
+    raw = unroll(view, states, q, psi, [mask.shape[-1]] * K, task, cfg, KIN, gens, burn)
+    losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask)
+    return losses.detach(), torch.autograd.grad(losses.sum(), list(pack.stacked))
+
+
+CASES = {  # (model config overrides, train config, models per pack)
+    "component_mean_u2v2": ({}, TrainConfig(u=2, v=2), 1),  # stepped ground-truth chunks
+    "component_mean_u3v2": ({}, TrainConfig(u=3, v=2), 1),  # fused ground-truth chunks
+    "u1v4_packed": ({}, TrainConfig(u=1, v=4), 3),  # a pack: batched layer sequences between segments
+    "free_phi": ({}, TrainConfig(u=2, v=3, phi_mode="free"), 1),
+    "detached": ({}, TrainConfig(u=2, v=2, detach_feedback=True), 2),
+    "input_noise": ({}, TrainConfig(u=2, v=2, input_noise=0.1), 1),
+    "deterministic_head": ({"head": "deterministic"}, TrainConfig(u=2, v=3), 2),
+    "no_gripper_layers_2": ({"num_layers": 2}, TrainConfig(u=3, v=3), 1),
+    "mixture_mean_falls_back": ({}, TrainConfig(u=1, v=3, feedback="mixture_mean"), 1),
+    "sample_falls_back": ({}, TrainConfig(u=2, v=3, feedback="sample", temperature=0.5), 1),
+}
+
+
+@needs_extension
+@pytest.mark.parametrize("case", list(CASES))
+def test_cpp_segment_matches_python_steps(toy, case, monkeypatch):
+    task, data = toy
+    made = []
+    monkeypatch.setattr(autoconditioning, "cpp_steps", lambda *a, **kw: made.append(self_fed.cpp_steps(*a, **kw))
+                        or made[-1])
+    overrides, cfg, k = CASES[case]
+    if case == "no_gripper_layers_2":
+        task = ToyReach(n_demos=6, min_steps=9, max_steps=13, gripper=False)
+        data = DemoTensors.build(task, task.demos(0))
+    pack = _pack(task, data, ModelConfig(**{"hidden_size": 16, "num_layers": 3, "mixtures": 3, **overrides}),
+                 cfg.phi_mode, k)
+    batch = data.batch(torch.arange(len(data.lengths)))
+    ref_loss, ref_grads = _loss_and_grads(pack, batch, task, cfg)
+    loss, grads = _loss_and_grads(pack, batch, task, dataclasses.replace(cfg, step_kernel="cpp"))
+    assert made[0] is None and (made[1] is None) == case.endswith("falls_back")  # the C++ steps ran where they apply
+    torch.testing.assert_close(loss, ref_loss, rtol=LOSS_RTOL, atol=0)
+    for name, g, g_ref in zip(pack.names, grads, ref_grads, strict=True):
+        scale = g_ref.abs().max().clamp_min(1e-3)
+        torch.testing.assert_close(g / scale, g_ref / scale, rtol=0, atol=GRAD_TOL, msg=lambda m, n=name: f"{n}: {m}")
+
+
+@needs_extension
+def test_cpp_segment_runs_where_it_applies(toy):
+    task, _ = toy
+    view = _pack(task, toy[1], ModelConfig(hidden_size=8, mixtures=2), "grounded", 1).view()
+    assert self_fed.supported(view, TrainConfig(step_kernel="cpp"))
+    assert not self_fed.supported(view, TrainConfig())  # python: the default
+    assert not self_fed.supported(view, TrainConfig(step_kernel="cpp", v=0))  # teacher forcing: no self-fed steps
+    assert not self_fed.supported(view, TrainConfig(step_kernel="cpp", feedback="mixture_mean"))
+    assert not self_fed.supported(view, TrainConfig(step_kernel="cpp"), return_inputs=True)
+
+
+def test_a_phi_not_linear_in_the_tip_falls_back(toy):
+    task, data = toy
+    psi = data.batch(torch.arange(2)).psi.unsqueeze(0)
+    assert torch.equal(self_fed._phi_offset(task, psi, torch.float32), -psi)
+
+    class Squared(ToyReach):
+        def phi(self, tip_pos, psi):
+            return tip_pos * tip_pos - psi
+
+    assert self_fed._phi_offset(Squared(), psi, torch.float32) is None
+
+
+def test_without_the_extension_the_python_steps_run(toy, monkeypatch):
+    task, data = toy
+    monkeypatch.setattr(self_fed, "self_fed_extension", lambda: None)
+    pack = _pack(task, data, ModelConfig(hidden_size=8, mixtures=2), "grounded", 1)
+    batch = data.batch(torch.arange(3))
+    cfg = TrainConfig(u=2, v=2)
+    ref = _loss_and_grads(pack, batch, task, cfg)
+    got = _loss_and_grads(pack, batch, task, dataclasses.replace(cfg, step_kernel="cpp"))
+    assert torch.equal(got[0], ref[0]) and all(torch.equal(a, b) for a, b in zip(got[1], ref[1], strict=True))
+
+
+TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
+BASE = TrainConfig(iters=8, batch_size=4, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0)
+
+
+@needs_extension
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_training_with_the_cpp_kernel_matches(toy, variant):
+    """The four variants trained 8 Adam steps with either kernel: same losses and weights (the teacher-forced
+    ones bitwise: no self-fed steps); a pack of two as well."""
+    task, _ = toy
+    demos = task.demos(0)
+    model_cfg, cfg = VARIANTS[variant].configs(TINY, BASE)
+    ref = train(model_cfg, cfg, task, demos)
+    got = train(model_cfg, dataclasses.replace(cfg, step_kernel="cpp"), task, demos)
+    exact = cfg.v == 0
+    torch.testing.assert_close(torch.tensor(got.history["train/loss"]), torch.tensor(ref.history["train/loss"]),
+                               rtol=0 if exact else 1e-6, atol=0)
+    for key, w in ref.model.state_dict().items():
+        torch.testing.assert_close(got.model.state_dict()[key], w, rtol=0, atol=0 if exact else WEIGHT_TOL)
+    if not exact:
+        cfgs = [dataclasses.replace(cfg, seed=s) for s in (0, 1)]
+        packed = train_packed(model_cfg, [dataclasses.replace(c, step_kernel="cpp") for c in cfgs], task, demos)
+        ref_packed = train_packed(model_cfg, cfgs, task, demos)
+        for p, r in zip(packed, ref_packed, strict=True):
+            for key, w in r.model.state_dict().items():
+                torch.testing.assert_close(p.model.state_dict()[key], w, rtol=0, atol=WEIGHT_TOL)
+
+
+def test_a_failed_build_warns_once_and_the_python_steps_run(toy, monkeypatch):
+    import warnings
+
+    from torch.utils import cpp_extension
+
+    from stm import cpp_ext
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(cpp_extension, "load", fail)
+    cpp_ext.self_fed_extension.cache_clear()
+    try:
+        with pytest.warns(RuntimeWarning, match="no compiler here"):
+            assert cpp_ext.self_fed_extension() is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert cpp_ext.self_fed_extension() is None  # once
+        task, data = toy
+        pack = _pack(task, data, ModelConfig(hidden_size=8, mixtures=2), "grounded", 1)
+        monkeypatch.setattr(self_fed, "self_fed_extension", cpp_ext.self_fed_extension)
+        assert self_fed.cpp_steps(pack.view(), TrainConfig(step_kernel="cpp"), task, KIN, None,
+                                  data.batch(torch.arange(2)).psi.unsqueeze(0)) is None
+    finally:
+        cpp_ext.self_fed_extension.cache_clear()
