@@ -23,6 +23,7 @@ STRICT = ConfigDict(strict=True, extra="forbid")  # shared by every config datac
 Head = Literal["mdn", "deterministic"]
 Feedback = Literal["sample", "component_mean", "mixture_mean"]  # what an MDN's output feeds back
 PhiMode = Literal["grounded", "free"]
+MatmulDtype = Literal["float32", "bfloat16"]  # dtype of the training step's matrix products (stm.lstm_step)
 HEADS: tuple[str, ...] = get_args(Head)
 FEEDBACKS: tuple[str, ...] = get_args(Feedback)
 PHI_MODES: tuple[str, ...] = get_args(PhiMode)
@@ -72,7 +73,8 @@ class ModelConfig(_Config):
 class TrainConfig(_Config):
     """Optimisation and the auto-conditioning schedule."""
 
-    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0}
+    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0,
+                                                "matmul_dtype": "float32"}
 
     iters: NonNegativeInt = 2000  # optimizer steps
     batch_size: PositiveInt = 32  # demonstrations per step (sampled without replacement when possible)
@@ -89,6 +91,9 @@ class TrainConfig(_Config):
     hold_steps: NonNegativeInt = 0  # steps of holding still trained after each demo (Demos.with_hold; not in the paper)
     window: NonNegativeInt = 0  # steps of a demo trained per sample (0: the whole demo; stm.windows; not in the paper)
     burn_in: NonNegativeInt = 0  # with window: ground-truth steps before it that warm the state, no gradient
+    # the matrix products of the LSTM stack and the head (forward and backward) in this dtype; state, elementwise
+    # maths, kinematics, loss, master weights and Adam stay float32 (stm.lstm_step.product_dtype)
+    matmul_dtype: MatmulDtype = "float32"
     checkpoint_every: NonNegativeInt = 500  # iterations between checkpoints (0: only at the end)
     log_every: NonNegativeInt = 10  # iterations between on_metrics calls
     val_every: NonNegativeInt = 0  # iterations between validations (0: never)

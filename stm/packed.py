@@ -11,6 +11,8 @@ unrolls a pack and stm.train runs the loop (a single model is a pack of one).
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import nn
 
@@ -86,6 +88,15 @@ class PackView:
                      for k in range(pack.config.num_layers)]
         self.head_w, self.head_b = p["head.weight"], p["head.bias"]  # (K, out, H), (K, out)
         self.K = self.head_w.shape[0]
+        self.matmul_dtype: torch.dtype | None = None  # the head's products in it (None: float32)
+
+    def with_products(self, dtype: torch.dtype | None) -> PackView:
+        """This view with the head's products in `dtype` (stm.lstm_step.product_dtype; None: float32)."""
+        if dtype is self.matmul_dtype:
+            return self
+        view = copy.copy(self)
+        view.matmul_dtype = dtype
+        return view
 
     @classmethod
     def of_model(cls, model: STM) -> PackView:
@@ -101,7 +112,11 @@ class PackView:
     def head(self, h: torch.Tensor) -> torch.Tensor:
         """Top hidden states (K, ..., H) -> head outputs (K, ..., out)."""
         flat = h.reshape(self.K, -1, h.shape[-1])
-        out = torch.baddbmm(self.head_b.unsqueeze(1), flat, self.head_w.transpose(1, 2))
+        dt = self.matmul_dtype
+        if dt is None:
+            out = torch.baddbmm(self.head_b.unsqueeze(1), flat, self.head_w.transpose(1, 2))
+        else:
+            out = torch.baddbmm(self.head_b.unsqueeze(1).to(dt), flat.to(dt), self.head_w.transpose(1, 2).to(dt)).float()
         return out.view(*h.shape[:-1], out.shape[-1])
 
     def mixture(self, raw: torch.Tensor):
@@ -119,9 +134,12 @@ class PackView:
     def feedback_predictor(self, mode: str, dims: int):
         """As STM.feedback_predictor, for all K models: (K, B, H) -> (K, B, dims) raw units."""
         std, mean = self.state_std[:dims], self.state_mean[:dims]
-        w, b = self.head_w, self.head_b
+        w, b, dt = self.head_w, self.head_b, self.matmul_dtype
         if not self.is_mdn:
             w_fb, b_fb = (w[:, :dims] * std[:, None]).transpose(1, 2), torch.addcmul(mean, b[:, :dims], std)
+            if dt is not None:
+                w_fb, b_fb = w_fb.to(dt), b_fb.to(dt)
+                return lambda h: torch.baddbmm(b_fb.unsqueeze(1), h.to(dt), w_fb).float()
             return lambda h: torch.baddbmm(b_fb.unsqueeze(1), h, w_fb)
         if mode not in ("component_mean", "mixture_mean"):
             return None
@@ -131,9 +149,11 @@ class PackView:
         w_fb = torch.cat([w[:, :m], w_mu.flatten(1, 2)], 1).transpose(1, 2)  # (K, H, m + m * dims)
         b_fb = torch.cat([b[:, :m], b_mu.flatten(1)], 1).unsqueeze(1)
         point = mdn.component_mean if mode == "component_mean" else mdn.mixture_mean
+        if dt is not None:  # cast once per unroll
+            w_fb, b_fb = w_fb.to(dt), b_fb.to(dt)
 
         def predict(h: torch.Tensor) -> torch.Tensor:
-            out = torch.baddbmm(b_fb, h, w_fb)
+            out = torch.baddbmm(b_fb, h, w_fb) if dt is None else torch.baddbmm(b_fb, h.to(dt), w_fb).float()
             return point(out[..., :m], out[..., m:].unflatten(-1, (m, dims)))
 
         return predict
