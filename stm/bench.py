@@ -15,7 +15,8 @@ auto-conditioned schedules'; window_speedup_packed_ac_u5v5 is a packed u = v = 5
 whole demos over one on windows of 40 steps after a 20-step burn-in (stm.windows); matmul_share_ac_u5v5
 is the share of one model's a.c. iteration spent in matrix products (torch.profiler; a lower bound) and
 packed_speedup_ceiling the most a pack of K could then gain (Amdahl: products cost K-fold, the rest
-once). The floor (stm.floor): the matrix products of one tf and one a.c. u = v = 5 iteration, single and
+once); bf16_over_fp32: the tf and a.c. u = v = 5 iterations, single and packed, with bf16 matrix products
+(TrainConfig.matmul_dtype) over float32, timed in the same rounds. The floor (stm.floor): the matrix products of one tf and one a.c. u = v = 5 iteration, single and
 packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms per
 model-iteration / its fp32 floor. The tip kinematics of the fed-back state (stm.fk) against
 pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK
@@ -29,6 +30,7 @@ time also counts the other processes' load. Ratios are what to read.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -207,7 +209,9 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
     windowed = _packed_step(task, stats, model.config, data.window_batch(torch.arange(spec["batch"]), windows), kin)
     cases = {"plain": plain_step, **{k: stm_step(c) for k, c in schedules.items()},
              **{f"packed_{k}": packed(c) for k, c in schedules.items()},
-             "packed_ac_u5v5_window": windowed(schedules["ac_u5v5"])}
+             "packed_ac_u5v5_window": windowed(schedules["ac_u5v5"]),
+             **{f"bf16_{k}": (packed if "packed" in k else stm_step)(dataclasses.replace(
+                 schedules[k.removeprefix("packed_")], matmul_dtype="bfloat16")) for k in FLOOR_CASES}}
     for fn in cases.values():  # warm-up
         fn()
     matmuls = {k: record_matmuls(cases[k]) for k in FLOOR_CASES}
@@ -233,6 +237,8 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "bf16_floor_over_fp32_floor": {k: round(med[f"floor_bf16_{k}"] / med[f"floor_fp32_{k}"], 3)
                                        for k in FLOOR_CASES},
         "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
+        # TrainConfig.matmul_dtype "bfloat16": the same iteration's ms over float32's, timed in the same rounds
+        "bf16_over_fp32": {k: round(med[f"bf16_{k}"] / med[k], 3) for k in FLOOR_CASES},
         "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "ac_u5v5")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
@@ -371,7 +377,8 @@ def main(argv: list[str] | None = None) -> dict:
                   f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
             print(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16: "
                   + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}" for k, v in r["floor_ms_per_model_iter"].items())
-                  + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items()))
+                  + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
+                  + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
         if "fk" in result:
             fk = result["fk"]
             us, calls = fk["us_per_call"], fk["aten_calls"]
