@@ -5,23 +5,22 @@
 One training iteration = forward, loss, backward, Adam step, as stm.train runs it (one model is a pack
 of one), on a batch at the paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
 reacher (3x64, 3 Gaussians, batch 32, 70 steps), with the task's state size.
-Timed in the same run, interleaved round by round (the machine is shared, so
-medians of interleaved rounds give fair ratios): teacher forcing (tf),
-auto-conditioning with u = v = 2 and u = v = 5, and a plain reference (nn.LSTM +
-linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three
-schedules for a pack of K = 3 models trained together (stm.packed): packed_speedup_* =
-(K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the lower of the two
-auto-conditioned schedules'; window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the
-whole demos over one on windows of 40 steps after a 20-step burn-in (stm.windows); matmul_share_ac_u5v5
-is the share of one model's a.c. iteration spent in matrix products (torch.profiler; a lower bound) and
-packed_speedup_ceiling the most a pack of K could then gain (Amdahl: products cost K-fold, the rest
-once); bf16_over_fp32: the tf and a.c. u = v = 5 iterations, single and packed, with bf16 matrix products
-(TrainConfig.matmul_dtype) over float32, timed in the same rounds. The floor (stm.floor): the matrix products of one tf and one a.c. u = v = 5 iteration, single and
+Timed in the same run, interleaved round by round (the machine is shared, so medians of interleaved rounds
+give fair ratios): teacher forcing (tf), auto-conditioning with u = v = 2 and u = v = 5, and a plain reference
+(nn.LSTM + linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three schedules
+for a pack of K = 3 models trained together (stm.packed): packed_speedup_* = (K x one model's ms/iter) / (the
+pack's ms/iter), packed_speedup_ac the lower of the two auto-conditioned schedules';
+window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the whole demos over one on windows of 40
+steps after a 20-step burn-in (stm.windows); matmul_share_ac_u5v5 is the share of one model's a.c. iteration
+spent in matrix products (torch.profiler; a lower bound) and packed_speedup_ceiling the most a pack of K could
+then gain (Amdahl: products cost K-fold, the rest once); bf16_over_fp32: the tf and a.c. u = v = 5 iterations,
+single and packed, with bf16 matrix products (TrainConfig.matmul_dtype) over float32, timed in the same
+rounds. The floor (stm.floor): the matrix products of one tf and one a.c. u = v = 5 iteration, single and
 packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms per
 model-iteration / its fp32 floor. The tip kinematics of the fed-back state (stm.fk) against
-pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK
-grounding, and 3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000
-and for 34 episodes (an evaluation cell's).
+pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
+3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an
+evaluation cell's).
 
 Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
 time also counts the other processes' load. Ratios are what to read.

@@ -193,11 +193,13 @@ class StackStep(torch.autograd.Function):
         return (dx, None, *grad_h, *grad_c) + (None,) * (2 * L)
 
 
-def gate_order(H: int) -> tuple[torch.Tensor, torch.Tensor]:
+def gate_order(H: int, device: torch.device | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), and the scale that doubles the g rows: tanh(x) =
-    2 sigmoid(2x) - 1, so one sigmoid covers all four gates (tanh costs several times a sigmoid per element)."""
-    order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
-    scale = torch.cat([torch.ones(3 * H), torch.full((H,), 2.0)])
+    2 sigmoid(2x) - 1, so one sigmoid covers all four gates (tanh costs several times a sigmoid per element).
+    On the weights' device (made there: no host copy inside a captured CUDA graph)."""
+    order = torch.cat([torch.arange(0, 2 * H, device=device), torch.arange(3 * H, 4 * H, device=device),
+                       torch.arange(2 * H, 3 * H, device=device)])
+    scale = torch.cat([torch.ones(3 * H, device=device), torch.full((H,), 2.0, device=device)])
     return order, scale
 
 
@@ -214,7 +216,7 @@ class StackStepper:
         H, L = lstm.hidden_size, lstm.num_layers
         self.layers = L
         self.store = DeferredGrads(L, dtype)
-        order, scale = gate_order(H)
+        order, scale = gate_order(H, lstm.weight_hh_l0.device)
         wb = []
         for k in range(L):  # W^T of [x, h] -> gates, and the summed bias
             w_ih, b = getattr(lstm, f"weight_ih_l{k}"), getattr(lstm, f"bias_ih_l{k}") + getattr(lstm, f"bias_hh_l{k}")

@@ -29,7 +29,7 @@ class PackedStackStepper:
         self.layers = len(lstm)
         self.dtype = dtype
         self.store = DeferredGrads(self.layers, dtype)
-        order, scale = gate_order(H)
+        order, scale = gate_order(H, lstm[0][1].device)
         wb = []
         for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(lstm):
             if k == 0 and in_std is not None:
