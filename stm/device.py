@@ -3,7 +3,8 @@
 "auto" is CUDA where torch sees a GPU, else the CPU. Training puts everything of its iteration on that device
 (the pack, its optimiser, the batches, the tip kinematics' constants); the random streams stay CPU generators
 (stm.mdn draws on the generator's device and moves the draws), so a seed draws the same data order, noise and
-samples on any device. Checkpoints and trained models come back on the CPU, where rollouts and physics run.
+samples on any device. Checkpoints and trained models come back on the CPU (they load anywhere); rollouts run
+on their model's device (stm.rollout), the physics on the CPU.
 """
 
 from __future__ import annotations

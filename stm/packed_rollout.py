@@ -81,9 +81,11 @@ def generate_packed(models: PackedSTM | list[STM], task: Task, episodes: list[Ep
     zeros = torch.zeros(K, B, pack.config.hidden_size, device=device)
     h, c = [zeros] * pack.config.num_layers, [zeros] * pack.config.num_layers
     grip_idx = task.layout.grip.start if task.layout.gripper else None
-    restarts = restart_mask(episodes, H).to(device)
+    restarts = restart_mask(episodes, H)
+    starting = restarts.any(0).tolist()  # per step (no device sync per step)
+    restarts = restarts.to(device)
     for t in range(H):
-        if t > 0 and restarts[:, t].any():
+        if t > 0 and starting[t]:
             rows = restarts[:, t]
             s = s.clone()
             s[:, rows] = initial_state(task, kin, q[:, rows], psi[rows, t].expand(K, -1, -1))

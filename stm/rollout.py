@@ -138,12 +138,13 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     grip_idx = task.layout.grip.start if task.layout.gripper else None
     restarts = restart_mask(episodes, H)
     restarts[:, 0] = True  # every episode starts a segment
+    starting = restarts.any(0).tolist()  # per step: does an episode start a segment (no device sync per step)
     restarts = restarts.to(device)
     commit = feedback in ("segment_component", "segment_track") and model.is_mdn
     chosen = torch.zeros(B, dtype=torch.long, device=device)
     z = None  # the previous step's fed-back point (normalised)
     for t in range(H):
-        if t > 0 and restarts[:, t].any():
+        if t > 0 and starting[t]:
             rows = restarts[:, t]
             s = s.clone()
             s[rows] = initial_state(task, kin, q[rows], psi[rows, t])
@@ -151,7 +152,7 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
             for x in hc:
                 x[:, rows] = 0.0
         raw, hc = model(model.normalize(s).unsqueeze(1), hc)
-        if commit and restarts[:, t].any():  # draw the segment's component from its first step's weights
+        if commit and starting[t]:  # draw the segment's component from its first step's weights
             rows = restarts[:, t]
             logit_alpha = model.mixture(raw[rows, 0])[0]
             chosen[rows] = mdn.sample_component(logit_alpha, temperature=temperature, generator=gen)

@@ -115,3 +115,13 @@ def test_kinematics_and_batches_move_to_a_device(toy):
     assert moved.states.device.type == moved.mask.device.type == "meta" and moved.states.shape == batch.states.shape
     full = data.batch(torch.arange(2), full=True)
     assert full.states.shape[1] == int(data.lengths.max()) + 1 and full.mask.shape[1] == int(data.lengths.max())
+
+
+def test_bench_takes_a_device(monkeypatch, capsys):
+    from stm import bench
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for bad, message in (("tpu", "unknown device 'tpu'"), ("cuda", "torch sees no CUDA GPU here")):
+        with pytest.raises(SystemExit) as exit_:
+            bench.main(["--device", bad, "--no-rollouts", "--no-fk"])
+        assert exit_.value.code == 2 and message in capsys.readouterr().err

@@ -179,6 +179,7 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
     monkeypatch.setitem(bench.SIZES, "reacher", dict(hidden=8, mixtures=2, batch=4, steps=6, gripper=False))
     out = bench.main(["--json", "--sizes", "reacher", "--rounds", "1", "--reps", "1", "--no-rollouts"])
     entry = out["training"][0]
+    assert out["device"] == "cpu"
     ms = entry["ms_per_iter"]
     assert entry["size"] == "reacher" and entry["packed_k"] == 3
     for k in ("tf", "ac_u2v2", "ac_u5v5"):
