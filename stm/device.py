@@ -29,12 +29,13 @@ def check_device_name(spec: str) -> str:
 
 
 def resolve_device(spec: str | torch.device = "cpu") -> torch.device:
-    """auto -> cuda if torch.cuda.is_available() else cpu; cpu; cuda[:N] if this machine has that GPU."""
+    """auto -> cuda if torch.cuda.is_available() else cpu; cpu; cuda[:N] if this machine has that GPU. A GPU
+    comes back with its index (cuda: the current one), so that tensors' devices compare equal to it."""
     if isinstance(spec, torch.device):
         spec = str(spec)
     check_device_name(spec)
     if spec == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        spec = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(spec)
     if device.type == "cuda":
         if not torch.cuda.is_available():
@@ -43,4 +44,6 @@ def resolve_device(spec: str | torch.device = "cpu") -> torch.device:
         count = torch.cuda.device_count()
         if device.index is not None and device.index >= count:
             raise DeviceError(f"device {spec!r}: this machine has {count} CUDA GPU(s), cuda:0..cuda:{count - 1}")
+        if device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
     return device

@@ -188,7 +188,10 @@ class TipKinematics:
         device = torch.device(device)
         if self.coef.device == device:
             return self
-        out = copy.copy(self)
+        moved = self.__dict__.setdefault("_moved", {})  # one copy per device (rollouts ask once per call)
+        if device in moved:
+            return moved[device]
+        out = moved[device] = copy.copy(self)
         for name in ("coef", "row_sums", "signs", "phases", "lower", "upper"):
             setattr(out, name, getattr(self, name).to(device))
         for name in ("tip_plan", "grad_plan"):
