@@ -227,7 +227,6 @@ class StackStepper:
         self.wb = DeferredWeights.apply(self.store, *wb)
         cast_once(self.store, wb)
 
-
     def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
                  ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """x (B, D), per-layer h, c (B, H) -> the next per-layer h, c (top layer last)."""
