@@ -44,6 +44,6 @@ def resolve_device(spec: str | torch.device = "cpu") -> torch.device:
         count = torch.cuda.device_count()
         if device.index is not None and device.index >= count:
             raise DeviceError(f"device {spec!r}: this machine has {count} CUDA GPU(s), cuda:0..cuda:{count - 1}")
-        if device.index is None:
-            device = torch.device("cuda", torch.cuda.current_device())
+        if device.index is None:  # (asking the current device would start CUDA in a process that only checks)
+            device = torch.device("cuda", torch.cuda.current_device() if torch.cuda.is_initialized() else 0)
     return device
