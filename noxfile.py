@@ -110,7 +110,7 @@ def bench(session: nox.Session) -> None:
     _install(session, "[dev]")
     session.run("pytest", "-m", "bench", "--benchmark-only", "--benchmark-columns=min,mean,median,ops,rounds",
                 *session.posargs)
-    session.run("python", "-m", "stm.bench")
+    session.run("python", "-m", "stm.speed.bench")
 
 
 @nox.session(venv_backend="none", requires=[APP])
@@ -140,7 +140,7 @@ def idm(session: nox.Session) -> None:
 @nox.session(venv_backend="none", requires=[APP])
 def report(session: nox.Session) -> None:
     """Regenerate tables and figures from the tracking store (`-- --results`: RESULTS.md; `-- export` / `-- import`:
-    the study exports of reports/studies, see reports/export.py)."""
+    the study exports of reports/studies, see reports/data/export.py)."""
     _run_app(session, "-m", "reports")
 
 
@@ -153,7 +153,7 @@ def ui(session: nox.Session) -> None:
 @nox.session(venv_backend="none", requires=[APP])
 def dashboard(session: nox.Session) -> None:
     """optuna-dashboard on 127.0.0.1:8080 over the sweep storage (journal file, or `-- --storage URL`)."""
-    _run_app(session, "-m", "experiments.dashboard")
+    _run_app(session, "-m", "experiments.sweeps.dashboard")
 
 
 @nox.session(requires=[APP])

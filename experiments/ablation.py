@@ -5,9 +5,9 @@ The seeds of a cell group (task x variant) train together as one packed job, up 
 them (experiments/pack.py; `--pack 1`: each cell alone).
 
 The main process creates the store, the experiment, the parent run and every child run; cells
-then run in K spawned processes (experiments/procs.py: they stop with the main process) that
+then run in K spawned processes (experiments/runtime/processes.py: they stop with the main process) that
 log through MlflowClient (with retries on SQLite lock contention). Each cell is claimed in the
-store before it trains (experiments/claims.py): a second command of the same study started
+store before it trains (experiments/runtime/claims.py): a second command of the same study started
 meanwhile waits for the cells the first one trains instead of training them again, and both
 report the same table."""
 
@@ -21,13 +21,13 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from experiments.cell_run import CellResult, mark_killed
 from experiments.cells import Cell, build_cells
-from experiments.claims import Claimed, claimed_cell, is_live
-from experiments.config import StudyConfig
 from experiments.pack import pack_units, run_unit
-from experiments.procs import default_workers, training_threads, worker_pool
-from experiments.schedule import prepare_datasets, run_scheduled
-from experiments.tracking import (
+from experiments.runtime.claims import Claimed, claimed_cell, is_live
+from experiments.runtime.processes import default_workers, training_threads, worker_pool
+from experiments.runtime.schedule import prepare_datasets, run_scheduled
+from experiments.runtime.tracking import (
     ABLATION,
     NOTE_TAG,
     PARENT_TAG,
@@ -44,7 +44,7 @@ from experiments.tracking import (
     tracking_uri,
     wait_for_earlier_runs,
 )
-from experiments.worker import CellResult, mark_killed
+from experiments.study_config import StudyConfig
 
 log = logging.getLogger(__name__)
 EXPERIMENT = ABLATION
@@ -75,7 +75,7 @@ def prepare_runs(client: Client, experiment_id: str, parent_id: str, cells: list
     """(cell, run id) to run -- a cell's unfinished run is reused so that it resumes -- and the
     keys of cells already FINISHED. Commands of one study preparing at once may each create a
     run for a cell: after the settle window (tracking.settle_window) all see the same earliest
-    and settle on it, so that the cell's claim (experiments/claims.py) is taken on one run; each
+    and settle on it, so that the cell's claim (experiments/runtime/claims.py) is taken on one run; each
     deletes only the duplicates it created itself."""
     window, attempts = settle_window(client.uri), 3
     todo, skipped, pending = [], [], list(cells)
@@ -248,7 +248,7 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
 
     try:
         with worker_pool(workers) as pool:
-            # datasets built here meanwhile, so that no two workers build the same one (experiments.schedule)
+            # datasets built here meanwhile, so that no two workers build the same one (experiments.runtime.schedule)
             run_scheduled(units, workers, lambda unit: pool.submit(run_unit, *_unit_args(unit), uri, False, level,
                                                                    training_threads(), *claim, False), record)
     except BrokenProcessPool as exc:
@@ -269,7 +269,7 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
 def success_markdown(client: Client, experiment_id: str, parent_id: str) -> str:
     """experiments.stats.success_table (the report's success table) over the FINISHED child runs, as Markdown."""
     from experiments.stats import eval_rows, success_rows, success_table
-    from stm.registry import VARIANTS
+    from stm.variants import VARIANTS
 
     evals = eval_rows(child_runs(client, experiment_id, parent_id))
     if evals.empty:

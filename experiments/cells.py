@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from experiments.config import EvalConfig, StudyConfig, config_hash, evaluation_tasks
+from experiments.study_config import EvalConfig, StudyConfig, config_hash, evaluation_tasks
 from stm.config import ModelConfig, TrainConfig
 
 
@@ -61,7 +61,7 @@ class Cell:
 
 def resolve_stm_configs(cfg: StudyConfig, task: str, variant: str, seed: int) -> tuple[ModelConfig, TrainConfig]:
     """(ModelConfig, TrainConfig) for one cell: the task's resolved configs <- seed <- variant."""
-    from stm.registry import get_variant
+    from stm.variants import get_variant
 
     tc = cfg.task_config(task)
     return get_variant(variant).configs(tc.model, dataclasses.replace(tc.train, seed=seed))

@@ -11,14 +11,14 @@ import argparse
 import logging
 import sys
 
-from experiments.config import ConfigError, StudyConfig, available_profiles, load_profile
-from experiments.procs import (
+from experiments.runtime.processes import (
     add_device_option,
     add_threads_option,
     checked_device,
     default_workers,
     set_training_threads,
 )
+from experiments.study_config import ConfigError, StudyConfig, available_profiles, load_profile
 
 log = logging.getLogger("experiments")
 
@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--storage", default=None, help="Optuna storage URL (default: journal file next to mlflow.db)")
     sw.add_argument("--study-name", default=None)
 
-    from experiments.postprocess import add_parsers
+    from experiments.control_studies import add_parsers
 
     add_parsers(sub)  # smoothing, idm
     from experiments.milestones import add_parser as add_milestones
@@ -113,7 +113,7 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
         "sweep.task": args.task, "sweep.variant": args.variant, "sweep.space": space,
         "sweep.trials": args.trials, "sweep.sampler": args.sampler, "sweep.storage": args.storage,
         "sweep.study_name": args.study_name})
-    from experiments.sweep import check_sweep
+    from experiments.sweeps.runner import check_sweep
 
     check_sweep(cfg)
     checked_device(cfg.device)
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     if args.command in ("smoothing", "idm"):
-        from experiments.postprocess import main as postprocess_main
+        from experiments.control_studies import main as postprocess_main
 
         return postprocess_main(args)
 
@@ -157,15 +157,15 @@ def main(argv: list[str] | None = None) -> int:
 
     queue = None
     if getattr(args, "worker", False):
-        from experiments.queue import resolve_queue
+        from experiments.runtime.cell_queue import resolve_queue
 
         try:
             queue = resolve_queue(args.queue)
         except ConfigError as e:
             print(_one_line(f"error: {e}"), file=sys.stderr)
             return 2
-    from experiments.store_check import StoreUnavailable, wait_for_stores
-    from experiments.tracking import tracking_uri
+    from experiments.runtime.store_check import StoreUnavailable, wait_for_stores
+    from experiments.runtime.tracking import tracking_uri
 
     try:  # a locked store or a server that is down: bounded retries, then one line, nothing written
         wait_for_stores(tracking_uri(), tuple(u for u in (queue, cfg.sweep.storage if args.command == "sweep"
@@ -176,11 +176,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.command == "ablation":
         from experiments.ablation import run_study, summary_text
-        from experiments.tracking import Client
+        from experiments.runtime.tracking import Client
 
         try:
             if queue:
-                from experiments.queue import run_worker
+                from experiments.runtime.cell_queue import run_worker
 
                 outcome = run_worker(cfg, queue)
             else:
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         print(summary_text(outcome, Client()))
         return 1 if outcome.failures else 0
 
-    from experiments.sweep import run_sweep
+    from experiments.sweeps.runner import run_sweep
 
     outcome = run_sweep(cfg)
     print(outcome.summary())

@@ -1,6 +1,6 @@
 """The [eval] and [sweep] sections of a study config, and the registries their values come from
-(tasks of envs.tasks, variants of stm.registry). Types and ranges are pydantic's (stm.config.STRICT);
-experiments.config re-exports everything here."""
+(tasks of envs.tasks, variants of stm.variants). Types and ranges are pydantic's (stm.config.STRICT);
+experiments.study_config re-exports everything here."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ class EvalConfig:
 
 @dataclass(frozen=True, config=STRICT)
 class SweepConfig:
-    """An Optuna sweep of one (task, variant); ranges are documented in experiments.sweep."""
+    """An Optuna sweep of one (task, variant); ranges are documented in experiments.sweeps.runner."""
 
     task: str = "reacher"
     variant: str = "ac-lstm-mdn"
@@ -66,7 +66,8 @@ class SweepConfig:
     max_retry: NonNegativeInt = 2  # a dead worker's trial is re-queued with the same parameters this many times
     seeds: PositiveInt = 1  # training seeds per trial (seed .. seed+seeds-1, packed); the objective is their mean
     tpe_startup: PositiveInt | None = None  # TPE's random start-up trials; None: max(1, trials // 3)
-    # the grid sampler's values (experiments.sweep); grid_uv: (u, v) pairs swept together instead of grid_u x grid_v
+    # the grid sampler's values (experiments.sweeps.runner); grid_uv: (u, v) pairs swept together instead of
+    # grid_u x grid_v
     grid_m: IntGrid = (1, 3, 5, 10, 20)
     grid_u: IntGrid = (1, 2, 5, 10)
     grid_v: IntGrid = (0, 1, 2, 5, 10)
@@ -154,7 +155,7 @@ def evaluation_tasks(training_task: str) -> list[str]:
 
 
 def known_variants() -> list[str]:
-    from stm.registry import VARIANTS
+    from stm.variants import VARIANTS
 
     return list(VARIANTS)
 

@@ -28,9 +28,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from experiments.cell_run import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, setup_process
 from experiments.config_errors import ConfigError
-from experiments.procs import add_device_option, add_threads_option, checked_device
-from experiments.tracking import (
+from experiments.runtime.processes import add_device_option, add_threads_option, checked_device
+from experiments.runtime.tracking import (
     ABLATION,
     MILESTONE_ITERATION,
     MILESTONES,
@@ -45,7 +46,6 @@ from experiments.tracking import (
     provenance_params,
     set_tags,
 )
-from experiments.worker import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, setup_process
 from stm.config import FEEDBACKS
 
 log = logging.getLogger(__name__)
@@ -111,8 +111,8 @@ def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None
     import numpy as np
 
     from experiments.evaluation import evaluate_model, rollout_arrays
-    from stm.checkpoint import load_model
     from stm.device import resolve_device
+    from stm.training.checkpoint import load_model
 
     setup_process(level, threads)
     client = Client(uri)
@@ -205,7 +205,7 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
                    feedback: str | None = None, device: str = "cpu") -> dict[str, int]:
     """Evaluate every kept checkpoint of the study not evaluated yet (feeding back `feedback` instead of the
     cells' own: module docstring); counts by outcome."""
-    from experiments.procs import training_threads, worker_pool
+    from experiments.runtime.processes import training_threads, worker_pool
 
     start = time.perf_counter()
     client = Client(uri)

@@ -6,7 +6,7 @@ Saved as a pickle, not as torch.export's pt2 (MLflow's default): an exported pro
 forward() only, and a rollout also calls normalize, predict and denormalize. The pickle names
 the STM class by its import path, so loading needs this project installed; the requirements
 pin it and its dependencies at the versions that trained the model. The resume checkpoint
-(experiments/worker.py) is a separate artifact and stays the one that training resumes from.
+(experiments/cell_run.py) is a separate artifact and stays the one that training resumes from.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from importlib import metadata
 import numpy as np
 from mlflow.entities import LoggedModelStatus
 
-from experiments.tracking import with_retries
+from experiments.runtime.backend_internals import pinned_tracking_uri
+from experiments.runtime.tracking import with_retries
 
 log = logging.getLogger(__name__)
 
@@ -106,9 +107,8 @@ def _fluent_tracking_uri(uri: str):
     restoring the *resolved* URI would pin it) and MLFLOW_TRACKING_URI, which set_tracking_uri
     also writes (later in-process code and subprocesses read it)."""
     import mlflow
-    from mlflow.tracking._tracking_service import utils  # no public API tells a pinned URI from a resolved one
 
-    pinned, env = utils._tracking_uri, os.environ.get(TRACKING_URI_ENV)
+    pinned, env = pinned_tracking_uri(), os.environ.get(TRACKING_URI_ENV)
     mlflow.set_tracking_uri(uri)
     try:
         yield

@@ -1,11 +1,11 @@
-"""A cell group's seeds trained as one packed job (stm.train.train_packed): cells of one training task
+"""A cell group's seeds trained as one packed job (stm.training.loop.train_packed): cells of one training task
 and variant that differ only in their seed share one process and one batched model.
 
-Each seed keeps its own MLflow child run with what experiments.worker.run_cell logs (the
+Each seed keeps its own MLflow child run with what experiments.cell_run.run_cell logs (the
 shared `CellRun`): params, config, its own checkpoint artifact to resume from, metrics,
 evaluation, rollouts and figures, so that a report cannot tell a packed cell from one trained
 alone. A seed whose loss goes non-finite is FAILED with its reason; the others go on. Each
-cell of a pack is claimed in the store (experiments/claims.py) before it trains; a cell another
+cell of a pack is claimed in the store (experiments/runtime/claims.py) before it trains; a cell another
 process holds is left out of the pack (and waited for, alone, when `wait`). A unit of one cell
 is run by claims.claimed_cell, the unpacked path.
 """
@@ -19,10 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.cells import Cell
-from experiments.claims import Beat, Claimed, acquire, claimed_cell, holder_id, log_headline
-from experiments.tracking import Client
-from experiments.worker import (
+from experiments.cell_run import (
     CellResult,
     CellRun,
     as_cell,
@@ -33,6 +30,9 @@ from experiments.worker import (
     setup_process,
     test_signal,
 )
+from experiments.cells import Cell
+from experiments.runtime.claims import Beat, Claimed, acquire, claimed_cell, holder_id, log_headline
+from experiments.runtime.tracking import Client
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ def pack_units(todo: Sequence[tuple[Cell, str]], pack: int, workers: int = 1) ->
     training task and variant, and configs that differ only in what a pack allows per seed. Without a
     limit, the largest units are halved while there are fewer units than `workers`: a pack trains in one
     process, and a core without a unit would idle."""
-    from stm.train import PER_SEED
+    from stm.training.loop import PER_SEED
 
     groups: dict[str, list[tuple[Cell, str]]] = {}
     for cell, run_id in todo:
@@ -92,9 +92,9 @@ def run_unit(cells: list[Cell], run_ids: list[str], uri: str, progress: bool, le
 
 def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], log_level: int = logging.INFO,
              threads: int | None = None) -> list[CellResult]:
-    """Train the cells (one cell group's seeds) with one stm.train.train_packed call, each
+    """Train the cells (one cell group's seeds) with one stm.training.loop.train_packed call, each
     in its own run as run_cell would; one CellResult per cell, in order."""
-    from stm.train import train_packed
+    from stm.training.loop import train_packed
 
     setup_process(log_level, threads)
     cells = [as_cell(c) for c in cells]

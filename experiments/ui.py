@@ -10,7 +10,7 @@ import subprocess
 import sys
 import time
 
-from experiments.tracking import STUDY_KINDS, runs_page_url, sqlite_path, tracking_uri
+from experiments.runtime.tracking import STUDY_KINDS, runs_page_url, sqlite_path, tracking_uri
 
 log = logging.getLogger(__name__)
 
@@ -21,7 +21,7 @@ def experiment_links(uri: str, host: str, port: int) -> list[str]:
     db = sqlite_path(uri)
     if db is not None and not db.exists():
         return []
-    from experiments.tracking import Client
+    from experiments.runtime.tracking import Client
 
     client = Client(uri)
     links = []

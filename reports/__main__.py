@@ -3,12 +3,12 @@ figure from the MLflow store alone (default: the latest study of each kind).
 
 `python -m reports --results [--ablation NAME_OR_RUN_ID] [--sweep NAME_OR_RUN_ID ...]`: regenerate
 reports/RESULTS.md (+ its small PNGs in reports/figures/) from reports/RESULTS.template.md and the store;
-`nox -s report -- --results` is the one command (see reports/results.py for the placeholders).
+`nox -s report -- --results` is the one command (see reports/results/writer.py for the placeholders).
 `--results --exports reports/studies` builds it from the study exports in the repository instead of a store.
 
 `python -m reports export --study NAME_OR_RUN_ID [--out reports/studies] [--with-checkpoints]`: write a study's
-compact export, or a resumable snapshot (reports/export.py); `python -m reports import FOLDER [...]`: read exports
-into a store (reports/studyimport.py)."""
+compact export, or a resumable snapshot (reports/data/export.py); `python -m reports import FOLDER [...]`: read exports
+into a store (reports/data/studyimport.py)."""
 
 from __future__ import annotations
 
@@ -58,7 +58,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def parse_export_args(argv: list[str]) -> argparse.Namespace:
     p = _Parser(prog="python -m reports export", description="Write a compact export of one study (its runs' "
-                "params, metrics, tags and the rollouts the reports read) to OUT/<study>/ (see reports/export.py).")
+                "params, metrics, tags and the rollouts the reports read) to OUT/<study>/ "
+                "(see reports/data/export.py).")
     p.add_argument("--study", required=True, metavar="NAME_OR_RUN_ID", help="study_name or parent run id")
     p.add_argument("--tracking-uri", help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)")
     p.add_argument("--out", type=Path, help="root of the exports (default: reports/studies; snapshots/ with "
@@ -70,7 +71,7 @@ def parse_export_args(argv: list[str]) -> argparse.Namespace:
 
 def parse_import_args(argv: list[str]) -> argparse.Namespace:
     p = _Parser(prog="python -m reports import", description="Recreate exported studies in an MLflow store (a "
-                "study already imported from the same export is skipped; see reports/studyimport.py).")
+                "study already imported from the same export is skipped; see reports/data/studyimport.py).")
     p.add_argument("exports", nargs="+", type=Path, help="export folders, or folders of them")
     p.add_argument("--tracking-uri", help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)")
     return p.parse_args(argv)
@@ -87,9 +88,9 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     if args.results:
         return results_main(args)
-    from reports.build import build_report, nothing_to_report
-    from reports.html import root_index
-    from reports.store import Store, StoreError
+    from reports.data.store import Store, StoreError
+    from reports.study_report.build import build_report, nothing_to_report
+    from reports.study_report.html import root_index
 
     start = time.perf_counter()
     try:
@@ -132,13 +133,13 @@ def _error(exc: Exception | str) -> int:
 
 
 def results_main(args: argparse.Namespace) -> int:
-    from reports.results import ResultsError, write_results
-    from reports.store import Store, StoreError
+    from reports.data.store import Store, StoreError
+    from reports.results.writer import ResultsError, write_results
 
     start = time.perf_counter()
     try:
         if args.exports:
-            from reports.export_store import ExportStore
+            from reports.data.export_store import ExportStore
 
             store = ExportStore(args.exports)
         else:
@@ -152,8 +153,8 @@ def results_main(args: argparse.Namespace) -> int:
 
 
 def export_main(args: argparse.Namespace) -> int:
-    from reports.export import ExportError, export_study, size_text
-    from reports.store import Store, StoreError
+    from reports.data.export import ExportError, export_study, size_text
+    from reports.data.store import Store, StoreError
 
     start = time.perf_counter()
     try:
@@ -172,10 +173,10 @@ def export_main(args: argparse.Namespace) -> int:
 
 
 def import_main(args: argparse.Namespace) -> int:
-    from experiments.tracking import tracking_uri
-    from reports.export import ExportError
-    from reports.store import StoreError
-    from reports.studyimport import import_exports
+    from experiments.runtime.tracking import tracking_uri
+    from reports.data.export import ExportError
+    from reports.data.store import StoreError
+    from reports.data.studyimport import import_exports
 
     uri = args.tracking_uri or tracking_uri()
     _quiet_mlflow()

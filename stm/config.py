@@ -89,7 +89,8 @@ class TrainConfig(_Config):
     phi_mode: PhiMode = "grounded"  # fed-back phi: "grounded" = FK of the integrated q, "free" = model's own
     input_noise: NonNegativeFloat = 0.0  # std of Gaussian noise on ground-truth inputs, normalised (not in the paper)
     hold_steps: NonNegativeInt = 0  # steps of holding still trained after each demo (Demos.with_hold; not in the paper)
-    window: NonNegativeInt = 0  # steps of a demo trained per sample (0: the whole demo; stm.windows; not in the paper)
+    # steps of a demo trained per sample (0: the whole demo; stm.training.windows; not in the paper)
+    window: NonNegativeInt = 0
     burn_in: NonNegativeInt = 0  # with window: ground-truth steps before it that warm the state, no gradient
     # the matrix products of the LSTM stack and the head (forward and backward) in this dtype; state, elementwise
     # maths, kinematics, loss, master weights and Adam stay float32 (stm.lstm_step.product_dtype)
@@ -97,7 +98,7 @@ class TrainConfig(_Config):
     checkpoint_every: NonNegativeInt = 500  # iterations between checkpoints (0: only at the end)
     log_every: NonNegativeInt = 10  # iterations between on_metrics calls
     val_every: NonNegativeInt = 0  # iterations between validations (0: never)
-    val_episodes: PositiveInt = 16  # fresh task episodes rolled out for the validation metric (stm.validation)
+    val_episodes: PositiveInt = 16  # fresh task episodes rolled out for the validation metric (stm.training.validation)
     max_seconds: NonNegativeFloat = 0.0  # wall-clock budget of the run, resumed runs included (0: none)
     seed: int = 0
 

@@ -5,8 +5,8 @@ stack steps with batched matmuls (stm.packed_lstm_step), the head is one baddbmm
 are per model. A pack is built from K ordinary STMs (`PackedSTM.from_models`, so each
 model keeps the initialisation its seed gives alone) and model k comes back out as an
 ordinary STM (`extract`). The optimiser (`PackedAdam`) and gradient clipping
-(`clip_per_model`) act per model, so each model trains as if alone; stm.autoconditioning
-unrolls a pack and stm.train runs the loop (a single model is a pack of one).
+(`clip_per_model`) act per model, so each model trains as if alone; stm.training.autoconditioning
+unrolls a pack and stm.training.loop runs the loop (a single model is a pack of one).
 """
 
 from __future__ import annotations

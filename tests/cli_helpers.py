@@ -2,7 +2,7 @@
 plain functions (not fixtures) so that any test module can import them.
 
 A fault test sets ACRMDN_TEST_SIGNAL_FILE (and ACRMDN_TEST_HOLD=1) for the study it runs
-(see experiments/worker.py): every worker appends "<run_id> <iteration>" to that file once a
+(see experiments/cell_run.py): every worker appends "<run_id> <iteration>" to that file once a
 checkpoint of its cell is in the store, then holds there, so the test kills or interrupts the
 study at a known point, never racing the training. `stop_group`: how the fixtures that start
 servers (tests/integration, tests/browser) stop them: stdlib only, as the browser lane's small

@@ -16,14 +16,14 @@ import pytest
 from mlflow import MlflowClient
 
 from envs.tasks.registry import TASKS
-from stm.registry import VARIANTS
+from stm.variants import VARIANTS
 
 pytestmark = pytest.mark.slow
 
 TOY_MODULE = textwrap.dedent('''
     from envs.tasks.registry import register
     from envs.tasks.reacher import Reacher
-    from stm.registry import VARIANTS, Variant
+    from stm.variants import VARIANTS, Variant
 
 
     @register
@@ -84,14 +84,14 @@ def test_a_toy_task_and_a_toy_variant_run_through_a_smoke_study(toy_module, monk
 
 
 def test_a_training_metric_reaches_every_seed_of_a_packed_study(monkeypatch):
-    """"Add a metric", step 2: a metric added to what the training loop reports (stm.train.training_metrics) is in
-    every cell's run of a study of two seeds, which train together as one pack; and the training time is logged
-    once per run."""
-    import stm.train
+    """"Add a metric", step 2: a metric added to what the training loop reports
+    (stm.training.loop.training_metrics) is in every cell's run of a study of two seeds, which train together as one
+    pack; and the training time is logged once per run."""
+    import stm.training.loop
     from experiments.cli import main
 
-    reported, packs = stm.train.training_metrics, []
-    train_packed = stm.train.train_packed
+    reported, packs = stm.training.loop.training_metrics, []
+    train_packed = stm.training.loop.train_packed
 
     def with_toy_metric(history, log_every, seconds):
         return {**reported(history, log_every, seconds), "train/toy_last_loss": history["train/loss"][-1]}
@@ -100,8 +100,8 @@ def test_a_training_metric_reaches_every_seed_of_a_packed_study(monkeypatch):
         packs.append(len(train_cfgs))
         return train_packed(model_cfg, train_cfgs, *args, **kwargs)
 
-    monkeypatch.setattr(stm.train, "training_metrics", with_toy_metric)
-    monkeypatch.setattr(stm.train, "train_packed", recording)
+    monkeypatch.setattr(stm.training.loop, "training_metrics", with_toy_metric)
+    monkeypatch.setattr(stm.training.loop, "train_packed", recording)
     uri = f"sqlite:///{Path.cwd() / 'mlflow.db'}"  # absolute, as in the test above
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     code = main(["ablation", "--profile", "smoke", "--variants", "ac-lstm-mdn", "--seeds", "2", "--workers", "1",

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from envs.robot import NEUTRAL_Q
-from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN
-from stm.idm_data import idm_features
-from stm.smoothing import smooth_exact, smooth_gd
+from stm.control.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN
+from stm.control.idm_data import idm_features
+from stm.control.smoothing import smooth_exact, smooth_gd
 
 pytestmark = pytest.mark.bench
 

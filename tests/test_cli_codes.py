@@ -43,8 +43,8 @@ def test_bad_queue_is_one_line_and_exit_code_2(tmp_path, queue, uri, message, mo
 
 
 def test_default_queue_lies_next_to_a_local_store(tmp_path):
-    from experiments.config import ConfigError
-    from experiments.queue import resolve_queue
+    from experiments.runtime.cell_queue import resolve_queue
+    from experiments.study_config import ConfigError
 
     assert resolve_queue(None, f"sqlite:///{tmp_path / 'mlflow.db'}") == f"sqlite:///{tmp_path / 'queue.db'}"
     assert resolve_queue("postgresql://h/q") == "postgresql://h/q"
@@ -68,7 +68,7 @@ def test_workers_variable_sets_the_default_and_the_flag_wins(monkeypatch):
     import os
 
     from experiments.cli import build_parser, load_config
-    from experiments.procs import default_workers
+    from experiments.runtime.processes import default_workers
 
     monkeypatch.setenv("ACRMDN_WORKERS", "3")
     assert default_workers() == 3
@@ -102,7 +102,7 @@ def test_bad_device_is_one_line_and_exit_code_2(tmp_path, args, message, monkeyp
 
 def test_device_reaches_the_cells_and_is_no_part_of_their_hash():
     from experiments.cells import build_cells
-    from experiments.config import load_profile
+    from experiments.study_config import load_profile
 
     cpu, auto = (load_profile("smoke", device=d) for d in (None, "auto"))
     assert cpu.device == "cpu" and auto.device == "auto"
@@ -116,9 +116,9 @@ def test_device_reaches_the_cells_and_is_no_part_of_their_hash():
 
 
 def test_cell_params_record_the_device_and_the_product_dtype():
+    from experiments.cell_run import cell_params
     from experiments.cells import build_cells
-    from experiments.config import load_profile
-    from experiments.worker import cell_params
+    from experiments.study_config import load_profile
 
     params = cell_params(build_cells(load_profile("smoke", device="auto"))[0])
     assert params["device"] in ("cpu", "cuda") and params["train.matmul_dtype"] == "float32"

@@ -1,4 +1,4 @@
-"""`python -m experiments.dashboard`: optuna-dashboard over the sweep storage (the journal
+"""`python -m experiments.sweeps.dashboard`: optuna-dashboard over the sweep storage (the journal
 file next to mlflow.db by default, an RDB URL when given), read over HTTP on a free port."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import optuna
 import pytest
 
-from experiments.sweep_storage import JOURNAL_NAME, open_storage
+from experiments.runtime.optuna_storage import JOURNAL_NAME, open_storage
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -39,8 +39,8 @@ def _env(store: Path) -> dict[str, str]:
 def _serve(args: list[str], store: Path) -> tuple[list[dict], str]:
     """Start the dashboard, wait for its study list over HTTP, stop it; (studies, its printout)."""
     port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "experiments.dashboard", "--port", str(port), *args], cwd=store,
-                            env=_env(store), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    proc = subprocess.Popen([sys.executable, "-m", "experiments.sweeps.dashboard", "--port", str(port), *args],
+                            cwd=store, env=_env(store), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
     try:
         deadline = time.monotonic() + 120
@@ -81,8 +81,8 @@ def test_dashboard_over_an_rdb_url(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("args, says", [([], "no sweep storage at"), (["--storage", "nosuch://x"], "error: ")])
 def test_nothing_to_open_is_one_line_and_exit_2(tmp_path, args, says):
-    proc = subprocess.run([sys.executable, "-m", "experiments.dashboard", *args], cwd=tmp_path, env=_env(tmp_path),
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-m", "experiments.sweeps.dashboard", *args], cwd=tmp_path,
+                          env=_env(tmp_path), capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and says in lines[0], proc.stderr

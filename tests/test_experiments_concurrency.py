@@ -61,7 +61,7 @@ def test_unwritable_working_directory_fails_at_once_with_one_line(tmp_path):
 
 
 def _open_store(uri: str, barrier, results) -> None:
-    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.runtime.tracking import Client, get_or_create_experiment
 
     barrier.wait()  # every process creates the fresh store at the same moment
     try:
@@ -88,7 +88,7 @@ def test_processes_creating_a_fresh_store_at_once_do_not_race_on_its_schema(tmp_
 
 
 def test_missing_folder_and_corrupt_database_fail_at_once_without_a_hint_to_wait(tmp_path):
-    from experiments.store_check import StoreUnusable, wait_for_stores
+    from experiments.runtime.store_check import StoreUnusable, wait_for_stores
 
     with pytest.raises(StoreUnusable) as missing:
         wait_for_stores(f"sqlite:///{tmp_path / 'nope' / 'mlflow.db'}", attempts=5, delay=30)  # no retry: no wait
@@ -109,7 +109,7 @@ def test_one_line_errors_stay_one_line_despite_pybullets_banner(tmp_path):
 
 
 def test_redacted_urls_hide_passwords():
-    from experiments.store_check import redact
+    from experiments.runtime.store_check import redact
 
     assert redact("postgresql://acrmdn:s3cret@db:5432/optuna") == "postgresql://acrmdn:***@db:5432/optuna"
     assert redact("http://127.0.0.1:5000") == "http://127.0.0.1:5000"
@@ -117,8 +117,8 @@ def test_redacted_urls_hide_passwords():
 
 @pytest.mark.slow
 def test_a_claim_is_taken_once_and_freed_when_its_holder_is_gone(tmp_path):
-    from experiments.claims import is_live, latest_claim, try_claim
-    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.runtime.claims import is_live, latest_claim, try_claim
+    from experiments.runtime.tracking import Client, get_or_create_experiment
 
     client = Client(f"sqlite:///{tmp_path / 'mlflow.db'}")
     run_id = client.create_run(get_or_create_experiment(client, "ablation")).info.run_id
@@ -168,7 +168,7 @@ def test_two_identical_studies_at_once_train_each_cell_once_and_report_the_same_
     parents = client.search_runs([client.get_experiment_by_name("ablation").experiment_id], "tags.role = 'parent'")
     assert len(parents) == 1 and parents[0].info.status == "FINISHED"
     from experiments.ablation import success_markdown
-    from experiments.tracking import Client
+    from experiments.runtime.tracking import Client
 
     table = success_markdown(Client(f"sqlite:///{tmp_path / 'mlflow.db'}"), parents[0].info.experiment_id,
                           parents[0].info.run_id)
@@ -239,7 +239,7 @@ def test_workers_stop_when_the_main_process_is_killed(tmp_path):
 def _death_signal() -> int:
     import ctypes
 
-    from experiments.procs import PR_GET_PDEATHSIG
+    from experiments.runtime.processes import PR_GET_PDEATHSIG
 
     got = ctypes.c_int(0)
     ctypes.CDLL(None).prctl(PR_GET_PDEATHSIG, ctypes.byref(got))
@@ -249,7 +249,7 @@ def _death_signal() -> int:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_the_kernel_kills_a_worker_when_its_main_process_dies():
     """Not left to the watch thread's poll, which a busy or starved worker may run seconds late."""
-    from experiments.procs import worker_pool
+    from experiments.runtime.processes import worker_pool
 
     with worker_pool(1) as pool:
         assert pool.submit(_death_signal).result(timeout=120) == signal.SIGKILL
@@ -260,7 +260,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.procs import worker_pool
+from experiments.runtime.processes import worker_pool
 
 
 def cell(out):

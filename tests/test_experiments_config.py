@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from experiments.cells import build_cells
-from experiments.config import ConfigError, available_profiles, load_profile, parse_override
+from experiments.runtime.tracking import MetricBuffer, flatten, last_logged_step, tracking_uri, with_retries
 from experiments.stats import run_success_metrics, wilson_interval
-from experiments.tracking import MetricBuffer, flatten, last_logged_step, tracking_uri, with_retries
+from experiments.study_config import ConfigError, available_profiles, load_profile, parse_override
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -160,7 +160,7 @@ def test_tracking_uri_default_and_env(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_metric_buffer_batches(tmp_path):
-    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.runtime.tracking import Client, get_or_create_experiment
 
     client = Client(f"sqlite:///{tmp_path / 'm.db'}")
     exp = get_or_create_experiment(client, "unit")
@@ -209,7 +209,7 @@ def test_cli_rejects_bad_configs_with_exit_2_before_writing(tmp_path, args, fiel
 
 
 def test_sweep_study_names_separate_different_settings():
-    from experiments.sweep import study_name
+    from experiments.sweeps.runner import study_name
 
     base = study_name(load_profile("smoke"))
     assert base == "reacher-ac-lstm-mdn-smoke"
@@ -259,7 +259,7 @@ def test_a_profile_file_that_does_not_parse_is_one_line_naming_the_file_and_line
 
 
 def test_a_profile_can_be_any_toml_file(tmp_path):
-    from experiments.postprocess import load_config
+    from experiments.control_studies import load_config
 
     own = tmp_path / "tiny.toml"
     own.write_text((REPO / "experiments" / "profiles" / "smoke.toml").read_text().replace("seeds = 1", "seeds = 3"))
@@ -292,7 +292,7 @@ def test_the_study_name_tells_studies_of_other_tasks_and_variants_apart():
 
 def test_set_applies_to_every_task_and_wins_over_the_profiles_per_task_values(caplog):
     """`--set train.u=3` on quick was shadowed by per_task u = 1 of reacher and pick-place."""
-    with caplog.at_level("WARNING", logger="experiments.config"):
+    with caplog.at_level("WARNING", logger="experiments.study_config"):
         cfg = load_profile("quick", ["train.u=3"], variants=["ac-lstm-mdn"])
     assert {t: cfg.task_config(t).train.u for t in cfg.tasks} == {t: 3 for t in cfg.tasks}
     assert all(c.train.u == 3 for c in build_cells(cfg))

@@ -123,10 +123,10 @@ def test_cell_killed_at_its_checkpoint_resumes_from_it(tmp_path):
 
 
 def test_failed_cell_is_marked_with_its_error(tmp_path):
+    from experiments.cell_run import run_cell
     from experiments.cells import build_cells
-    from experiments.config import load_profile
-    from experiments.tracking import Client, get_or_create_experiment
-    from experiments.worker import run_cell
+    from experiments.runtime.tracking import Client, get_or_create_experiment
+    from experiments.study_config import load_profile
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cell = build_cells(load_profile("smoke", ["train.iters=2", "train.val_every=0"], variants=["lstm"]))[0]

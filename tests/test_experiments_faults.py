@@ -81,7 +81,7 @@ def test_ctrl_c_marks_running_cells_killed_and_a_rerun_resumes(tmp_path):
 
 def _smoke_cell(*overrides: str, variant: str = "lstm"):
     from experiments.cells import build_cells
-    from experiments.config import load_profile
+    from experiments.study_config import load_profile
 
     return build_cells(load_profile("smoke", ["train.val_every=0", "eval.figures=0", "eval.rollouts=2",
                                               *overrides], variants=[variant]))[0]
@@ -114,8 +114,8 @@ def _code_inside(path: Path) -> str:
 @pytest.mark.slow
 @pytest.mark.parametrize("damage", [_truncated, _other_version, _code_inside])
 def test_unusable_checkpoint_artifact_is_retrained_with_one_warning(tmp_path, caplog, damage):
-    from experiments.tracking import Client, get_or_create_experiment
-    from experiments.worker import run_cell
+    from experiments.cell_run import run_cell
+    from experiments.runtime.tracking import Client, get_or_create_experiment
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cell = _smoke_cell()
@@ -125,10 +125,11 @@ def test_unusable_checkpoint_artifact_is_retrained_with_one_warning(tmp_path, ca
     bad.parent.mkdir()
     reason = damage(bad)
     client.log_artifact(run_id, str(bad), "checkpoint")
-    with caplog.at_level(logging.WARNING, logger="experiments.worker"):
+    with caplog.at_level(logging.WARNING, logger="experiments.cell_run"):
         result = run_cell(cell.to_dict(), uri, run_id)
     assert result.status == "FINISHED", result.error
-    warns = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and r.name == "experiments.worker"]
+    warns = [r.getMessage() for r in caplog.records
+             if r.levelno >= logging.WARNING and r.name == "experiments.cell_run"]
     assert len(warns) == 1 and "retraining from scratch" in warns[0] and "\n" not in warns[0]
     assert reason in warns[0], warns[0]
     run = client.get_run(run_id)
@@ -140,9 +141,9 @@ def test_unusable_checkpoint_artifact_is_retrained_with_one_warning(tmp_path, ca
 
 @pytest.mark.slow
 def test_nan_loss_fails_its_cell_with_the_iteration_and_the_study_goes_on(tmp_path, monkeypatch):
-    import stm.train as st
+    import stm.training.loop as st
     from experiments.ablation import run_study
-    from experiments.config import load_profile
+    from experiments.study_config import load_profile
 
     original = st.unroll
     calls = {"mdn": 0}
@@ -225,7 +226,7 @@ def test_locked_sqlite_store_gives_one_clear_error_and_stays_untouched(tmp_path)
 
 @pytest.mark.slow
 def test_store_locked_for_a_moment_is_waited_for(tmp_path):
-    from experiments.store_check import wait_for_stores
+    from experiments.runtime.store_check import wait_for_stores
 
     _mlflow_store(tmp_path)
     lock = sqlite3.connect(tmp_path / "mlflow.db", isolation_level=None, check_same_thread=False)

@@ -65,8 +65,8 @@ def test_milestones_evaluate_each_kept_checkpoint_once(kept_store):
 
 @pytest.mark.slow
 def test_success_vs_iterations_figure_draws_each_variant(kept_store, tmp_path):
-    from reports.milestones import milestone_rows, success_vs_iterations
-    from reports.store import Store
+    from reports.analyses.success_vs_iterations import milestone_rows, success_vs_iterations
+    from reports.data.store import Store
 
     if not _runs(MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}"), "milestones"):
         assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
@@ -102,8 +102,8 @@ def test_cells_without_kept_checkpoints_say_how_to_keep_them(kept_store):
 
 @pytest.mark.slow
 def test_results_template_names_the_milestones_study(kept_store, tmp_path):
-    from reports.results import write_results
-    from reports.store import Store
+    from reports.data.store import Store
+    from reports.results.writer import write_results
 
     if not _runs(MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}"), "milestones"):
         assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
@@ -144,8 +144,8 @@ def test_feedback_evaluates_the_final_models_anew_as_their_own_study(mdn_store, 
     assert run.data.metrics["reacher/final_distance_mean"] != source.data.metrics["reacher/final_distance_mean"]
 
     # the lever table puts the two side by side, told apart by their feedback
-    from reports.results import write_results
-    from reports.store import Store
+    from reports.data.store import Store
+    from reports.results.writer import write_results
 
     template = tmp_path / "t.md"
     template.write_text('{{ lever("reacher", "mdn", "mdn-milestones-feedback-sample") }}\n')

@@ -94,9 +94,9 @@ def test_a_diverging_seed_fails_while_the_other_finishes(tmp_path):
     import dataclasses
 
     from experiments.cells import build_cells
-    from experiments.config import load_profile
     from experiments.pack import run_pack
-    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.runtime.tracking import Client, get_or_create_experiment
+    from experiments.study_config import load_profile
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cfg = load_profile("smoke", ["train.val_every=0", "eval.figures=0", "eval.rollouts=2"], variants=["lstm"], seeds=2)
@@ -139,8 +139,8 @@ def test_a_queue_worker_trains_a_cell_groups_seeds_as_one_entry(tmp_path):
 def test_pack_is_a_typed_option_outside_every_hash():
     from experiments.cells import build_cells
     from experiments.cli import build_parser, load_config
-    from experiments.config import ConfigError, load_profile
     from experiments.pack import pack_units
+    from experiments.study_config import ConfigError, load_profile
 
     base = load_profile("smoke", seeds=3)
     packed = load_config(build_parser().parse_args(["ablation", "--profile", "smoke", "--seeds", "3", "--pack", "2"]))

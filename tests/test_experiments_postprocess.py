@@ -13,7 +13,7 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from experiments.cli import main
-from experiments.postprocess import load_config
+from experiments.control_studies import load_config
 
 pytestmark = pytest.mark.slow  # every test runs a study or the CLI
 
@@ -105,8 +105,8 @@ def _position_reference(cfg) -> dict[str, float]:
     """The IDM study's position condition from its definition: the expert's straight-line plans to the
     four goals, played in position control; RMS and largest tip distance to the plan, final distance to
     the goal, success within the reacher's 5 cm; means over the plans."""
-    from stm.idm_study import position_playback_tips
-    from stm.plans import FOUR_GOALS, straight_line_plans
+    from stm.control.idm_study import position_playback_tips
+    from stm.control.plans import FOUR_GOALS, straight_line_plans
 
     assert cfg.smoothing_gamma == 0  # the smoke profile plays the plans as they are
     plans = straight_line_plans(FOUR_GOALS, steps=cfg.plan_steps)
@@ -174,9 +174,9 @@ def test_overrides_change_the_study_name():
 def _fake_ablation_cell(client: MlflowClient, work: Path) -> str:
     """A FINISHED reacher/ac-lstm-mdn ablation run holding a (small, untrained) STM checkpoint."""
     from envs.tasks.registry import get_task
-    from stm.checkpoint import FORMAT_VERSION, save_checkpoint
     from stm.config import ModelConfig, TrainConfig
     from stm.model import STM, layout_to_dict
+    from stm.training.checkpoint import FORMAT_VERSION, save_checkpoint
 
     task = get_task("reacher")
     cfg = ModelConfig(hidden_size=8, num_layers=1, mixtures=2)
@@ -207,8 +207,8 @@ def test_skeletons_from_an_ablation_checkpoint(tmp_path, monkeypatch, capsys):
     assert run.data.tags["skeleton_source"] == f"stm:{run_id}"
     assert run.data.tags["study_name"] == "smoothing-smoke-stm"  # apart from the stand-in's study
     # the skeletons are this checkpoint's plans: their end's distance to the goals, recomputed from the model
-    from stm.checkpoint import load_model
-    from stm.plans import FOUR_GOALS, stm_plans
+    from stm.control.plans import FOUR_GOALS, stm_plans
+    from stm.training.checkpoint import load_model
 
     steps = load_config("smoothing", "smoke", []).study.steps
     plans = stm_plans(load_model(tmp_path / "model.pt"), FOUR_GOALS, horizon=steps)
@@ -238,22 +238,22 @@ def test_report_of_a_study_without_figures_shows_gaps(tmp_path, monkeypatch):
 
 
 def test_a_failing_study_is_recorded_and_a_rerun_clears_it(tmp_path, monkeypatch, capsys):
-    import stm.smoothing
+    import stm.control.smoothing
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     monkeypatch.chdir(tmp_path)
-    real = stm.smoothing.smoothing_study
+    real = stm.control.smoothing.smoothing_study
 
     def broken(*args, **kwargs):
         raise RuntimeError("solver exploded")
 
-    monkeypatch.setattr(stm.smoothing, "smoothing_study", broken)
+    monkeypatch.setattr(stm.control.smoothing, "smoothing_study", broken)
     assert main(["smoothing", "--profile", "smoke"]) == 1
     assert "RuntimeError: solver exploded" in capsys.readouterr().err
     run = _parent(MlflowClient(uri), "smoothing")
     assert run.info.status == "FAILED" and run.data.tags["error"] == "RuntimeError: solver exploded"
-    monkeypatch.setattr(stm.smoothing, "smoothing_study", real)
+    monkeypatch.setattr(stm.control.smoothing, "smoothing_study", real)
     assert main(["smoothing", "--profile", "smoke"]) == 0
     run = _parent(MlflowClient(uri), "smoothing")  # the same study's run, now finished
     assert run.info.status == "FINISHED" and run.data.tags["error"] == "" and "gd/mean_sq_jerk" in run.data.metrics

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from experiments.config import OBJECTIVES, SAMPLERS, ConfigError, parse_override
+from experiments.study_config import OBJECTIVES, SAMPLERS, ConfigError, parse_override
 from stm.config import FEEDBACKS, HEADS, PHI_MODES
 
 # integer fields and the smallest allowed value
@@ -51,7 +51,7 @@ unknown_field = st.tuples(st.sampled_from(SECTIONS), st.from_regex(r"[a-z][a-z_\
 def _fields(section: str) -> set[str]:
     import dataclasses
 
-    from experiments.config import EvalConfig, SweepConfig
+    from experiments.study_config import EvalConfig, SweepConfig
     from stm.config import ModelConfig, TrainConfig
 
     cls = {"train": TrainConfig, "model": ModelConfig, "eval": EvalConfig, "sweep": SweepConfig}[section]
@@ -142,7 +142,7 @@ accepted = st.one_of(
 
 @pytest.fixture(scope="module")
 def mlflow_run(tmp_path_factory):
-    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.runtime.tracking import Client, get_or_create_experiment
 
     uri = f"sqlite:///{tmp_path_factory.mktemp('prop-store') / 'mlflow.db'}"
     client = Client(uri)
@@ -153,10 +153,10 @@ def mlflow_run(tmp_path_factory):
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(item=accepted)
 def test_accepted_values_round_trip_through_the_logged_params(mlflow_run, item):
+    from experiments.cell_run import cell_params
     from experiments.cells import build_cells
-    from experiments.config import load_profile
-    from experiments.tracking import log_params
-    from experiments.worker import cell_params
+    from experiments.runtime.tracking import log_params
+    from experiments.study_config import load_profile
 
     field, value = item
     text = repr(value) if isinstance(value, float) else str(value)

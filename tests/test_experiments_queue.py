@@ -1,6 +1,6 @@
 """`ablation --worker`: worker commands share a cell queue (Optuna RDB storage on SQLite here;
 PostgreSQL in tests/integration). One is killed with SIGKILL while it holds a cell at that cell's
-first checkpoint (experiments/worker.py's test hook); the other joins, and the dead worker's cell
+first checkpoint (experiments/cell_run.py's test hook); the other joins, and the dead worker's cell
 must be failed by heartbeat, re-queued, and resumed by the survivor in the same MLflow run from its
 checkpoint: every cell FINISHED once, no duplicate runs, nothing left RUNNING."""
 
@@ -35,7 +35,7 @@ def test_worker_killed_mid_cell_is_retried_by_the_other(tmp_path):
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     signals = tmp_path / "signals"
     # the victim creates the stores and the queue, takes a cell and holds at its first checkpoint
-    # (experiments/worker.py's test hook); it dies there, holding the cell; then the survivor joins
+    # (experiments/cell_run.py's test hook); it dies there, holding the cell; then the survivor joins
     victim = _start(args, tmp_path, tmp_path / "victim.log", held_env(tmp_path, signals))
     survivor = None
     try:

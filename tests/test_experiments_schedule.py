@@ -1,4 +1,4 @@
-"""experiments.schedule: a unit starts only once its dataset is built, at most `workers` at once, the
+"""experiments.runtime.schedule: a unit starts only once its dataset is built, at most `workers` at once, the
 costliest ready unit first; datasets are built in the background, a failure reaches the caller."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ from concurrent.futures import Future
 
 import pytest
 
-from experiments import schedule
 from experiments.cells import build_cells
-from experiments.config import load_profile
 from experiments.pack import pack_units
+from experiments.runtime import schedule
+from experiments.study_config import load_profile
 
 
 def _units(*tasks: str):

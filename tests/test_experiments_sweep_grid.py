@@ -16,10 +16,10 @@ from mlflow.tracking import MlflowClient
 from optuna.storages import JournalStorage
 from optuna.storages.journal import JournalFileBackend
 
-from experiments.config import load_profile
-from experiments.sweep import check_sweep, make_sampler, planned_trials, study_name
-from experiments.sweep_figures import param_importances
-from experiments.sweep_objective import grid_space, suggest, uv_pairs
+from experiments.study_config import load_profile
+from experiments.sweeps.figures import param_importances
+from experiments.sweeps.objective import grid_space, suggest, uv_pairs
+from experiments.sweeps.runner import check_sweep, make_sampler, planned_trials, study_name
 
 optuna.logging.set_verbosity(optuna.logging.ERROR)
 GRID = ["--sampler", "grid", "--space", "m,u,v", "--set", "sweep.grid_m=[1,2]", "--set", "sweep.grid_uv=[[1,1],[2,2]]",
@@ -73,8 +73,8 @@ def test_a_grid_sweep_with_two_seeds_per_trial_and_its_importances(tmp_path):
     assert set(importances) == {"m", "uv"} and sum(importances.values()) == pytest.approx(1.0)
     assert parent.data.tags["importance_evaluator"] == "fANOVA"
 
-    from reports.store import Store
-    from reports.sweeps import sweep_importance, sweep_table
+    from reports.data.store import Store
+    from reports.study_report.sweep_summary import sweep_importance, sweep_table
 
     (study,) = [s for s in Store(f"sqlite:///{tmp_path / 'mlflow.db'}").studies() if s.kind == "sweep"]
     table = sweep_table(study)

@@ -1,5 +1,6 @@
 """One torch thread per training process unless the user asks otherwise: `--threads N` or $OMP_NUM_THREADS
-(experiments/procs.py); spawned workers inherit one-thread OMP/MKL/OpenBLAS variables where the user set none."""
+(experiments/runtime/processes.py); spawned workers inherit one-thread OMP/MKL/OpenBLAS variables where the user
+set none."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import os
 
 import pytest
 
-from experiments.procs import NATIVE_THREADS_ENV, set_training_threads, training_threads, worker_pool
+from experiments.runtime.processes import NATIVE_THREADS_ENV, set_training_threads, training_threads, worker_pool
 
 
 @pytest.mark.parametrize("value,threads", [(None, 1), ("3", 3), ("4,2", 4), ("", 1), ("many", 1), ("0", 1)])
@@ -34,9 +35,9 @@ def test_the_threads_flag_wins_over_the_variable(monkeypatch, capsys):
 def _child_settings() -> tuple[dict[str, str | None], int]:
     import torch
 
-    from experiments.procs import training_threads
+    from experiments.runtime.processes import training_threads
 
-    torch.set_num_threads(training_threads())  # what experiments.worker.setup_process does with it
+    torch.set_num_threads(training_threads())  # what experiments.cell_run.setup_process does with it
     return {k: os.environ.get(k) for k in NATIVE_THREADS_ENV}, torch.get_num_threads()
 
 

@@ -6,9 +6,18 @@ import pytest
 import torch
 
 from envs.robot import NEUTRAL_Q
-from stm.idm import FastIDM, IDMConfig, IDMController, InverseDynamicsMDN, load_idm, save_idm, track_plan, train_idm
-from stm.idm_data import FEATURE_DIM, ExplorationConfig, IDMData, cache_path, collect, load_or_collect
-from stm.torque_sim import JointDynamics, TorqueWorld
+from stm.control.idm import (
+    FastIDM,
+    IDMConfig,
+    IDMController,
+    InverseDynamicsMDN,
+    load_idm,
+    save_idm,
+    track_plan,
+    train_idm,
+)
+from stm.control.idm_data import FEATURE_DIM, ExplorationConfig, IDMData, cache_path, collect, load_or_collect
+from stm.control.torque_sim import JointDynamics, TorqueWorld
 
 TINY = ExplorationConfig(episodes=2, episode_seconds=0.6, seed=3)
 
@@ -139,8 +148,8 @@ def test_short_idm_rollout_in_pybullet_stays_stable():
 
 @pytest.mark.slow
 def test_idm_study_smoke_end_to_end(tmp_path):
-    from experiments.postprocess import load_config
-    from stm.idm_study import idm_study
+    from experiments.control_studies import load_config
+    from stm.control.idm_study import idm_study
 
     res = idm_study(load_config("idm", "smoke", []).study, cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
     assert res["position/tip_rmse_vs_plan_m"] < 0.02 and res["position/final_error_m"] < 0.005

@@ -1,5 +1,5 @@
 """envs.ik (damped-least-squares IK: solve_ik, solve_path) checked against pybullet's forward
-kinematics, and stm.idm's save_idm/load_idm round trip."""
+kinematics, and stm.control.idm's save_idm/load_idm round trip."""
 
 from __future__ import annotations
 
@@ -88,8 +88,8 @@ def test_solve_path_follows_a_line_waypoint_by_waypoint(bullet):
 
 
 def test_save_and_load_idm_round_trip(tmp_path):
-    from stm.idm import IDMConfig, InverseDynamicsMDN, load_idm, save_idm
-    from stm.idm_data import FEATURE_DIM
+    from stm.control.idm import IDMConfig, InverseDynamicsMDN, load_idm, save_idm
+    from stm.control.idm_data import FEATURE_DIM
 
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
@@ -113,7 +113,7 @@ class _Code:
 
 
 def test_load_idm_refuses_pickled_code(tmp_path):
-    from stm.idm import load_idm
+    from stm.control.idm import load_idm
 
     torch.save({"config": {}, "state_dict": _Code()}, tmp_path / "evil.pt")
     with pytest.raises(Exception, match="[Ww]eights only load failed|Unsupported"):

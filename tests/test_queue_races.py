@@ -1,4 +1,4 @@
-"""Races between queue workers (experiments/sweep_storage.py, experiments/claims.py), each set up
+"""Races between queue workers (experiments/runtime/optuna_storage.py, experiments/runtime/claims.py), each set up
 on a real SQLite MLflow store and Optuna RDB storage: a trial failed as stale must not overrule a
 run that is FINISHED or that a live process holds; a process waiting for a dead holder's cell
 takes it over even when the queue has marked the run FAILED; a worker whose trial another worker
@@ -22,7 +22,7 @@ HOST = socket.gethostname()
 
 @pytest.fixture
 def store(tmp_path: Path):
-    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.runtime.tracking import Client, get_or_create_experiment
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     client = Client(uri)
@@ -50,7 +50,7 @@ def _claimed(client, run_id: str, n: int, holder: str, beat: str | None = None) 
 
 
 def test_a_stale_trial_fails_only_its_dead_workers_runs_and_is_requeued(store, tmp_path):
-    from experiments.sweep_storage import RetryDeadTrial
+    from experiments.runtime.optuna_storage import RetryDeadTrial
 
     uri, client, exp = store
     finished, held, dead = (client.create_run(exp).info.run_id for _ in range(3))
@@ -75,8 +75,8 @@ def test_a_stale_trial_fails_only_its_dead_workers_runs_and_is_requeued(store, t
 
 @pytest.mark.parametrize("released", [False, True], ids=["holder-died", "holder-gave-up"])
 def test_a_waiter_takes_over_a_dead_holders_failed_run_but_not_a_released_one(store, released, monkeypatch):
-    import experiments.claims as claims
-    from experiments.claims import Claimed, acquire, latest_claim
+    import experiments.runtime.claims as claims
+    from experiments.runtime.claims import Claimed, acquire, latest_claim
 
     uri, client, exp = store
     run_id = client.create_run(exp).info.run_id
@@ -119,7 +119,7 @@ def test_a_waiter_takes_over_a_dead_holders_failed_run_but_not_a_released_one(st
 def test_a_worker_whose_trial_was_failed_as_stale_goes_on_with_the_queue(tmp_path):
     from optuna.trial import TrialState
 
-    from experiments.sweep_storage import drain
+    from experiments.runtime.optuna_storage import drain
 
     study = _queue(tmp_path)
     for _ in range(2):
@@ -139,7 +139,7 @@ def test_a_worker_whose_trial_was_failed_as_stale_goes_on_with_the_queue(tmp_pat
 
 
 def test_other_errors_of_a_worker_still_stop_it(tmp_path):
-    from experiments.sweep_storage import drain
+    from experiments.runtime.optuna_storage import drain
 
     study = _queue(tmp_path)
     study.enqueue_trial({})

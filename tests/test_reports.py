@@ -16,9 +16,9 @@ from scipy.stats import binomtest
 
 from experiments.stats import wilson_interval
 from reports.__main__ import main
-from reports.build import build_report
-from reports.store import Store
-from reports.tables import success_summary
+from reports.data.store import Store
+from reports.study_report.build import build_report
+from reports.study_report.tables import success_summary
 
 VARIANTS = ("lstm", "ac-lstm-mdn")
 SEEDS = (0, 1)
@@ -301,7 +301,7 @@ def test_bench_quick_sized_report(tmp_path, benchmark):
 def test_curve_band_over_seeds_with_missing_steps():
     import pandas as pd
 
-    from reports.seed_aggregates import curve_band
+    from reports.data.seed_aggregates import curve_band
     a = pd.DataFrame({"step": [0, 10, 20], "value": [3.0, 2.0, 1.0]})
     b = pd.DataFrame({"step": [0, 10], "value": [5.0, 4.0]})  # this seed stopped early
     band = curve_band([a, b]).set_index("step")
@@ -311,7 +311,7 @@ def test_curve_band_over_seeds_with_missing_steps():
 
 
 def test_table_renderings_escape_their_markup():
-    from reports.tables import Table
+    from reports.study_report.tables import Table
     t = Table("t", "rate_1 & 50%", ["variant", "a|b"], [["x_1 <b>", "50% ± 2 †"]], ["note #1"])
     assert r"rate\_1 \& 50\%" in t.to_latex() and r"50\% $\pm$ 2 $^\dagger$" in t.to_latex()
     assert "&lt;b&gt;" in t.to_html() and "a\\|b" in t.to_markdown()
@@ -431,7 +431,7 @@ def test_sign_flip_and_permutation_p_values_are_exact():
 
 def test_small_p_values_print_as_a_bound_not_as_zero():
     from experiments.stats import p_value
-    from reports.comparisons import sentence
+    from reports.results.comparisons import sentence
 
     assert [p_value(p) for p in (0.25, 0.0625, 0.004, 0.0004)] == ["0.25", "0.06", "0.004", "< 0.001"]
     c = {"difference": -0.21, "low": -0.30, "high": -0.12, "p": 2e-5, "test": "groups", "n": "10+10"}
@@ -491,13 +491,13 @@ def test_failed_study_beside_a_good_one_is_skipped_with_one_line(tmp_path, capsy
 
 @pytest.mark.parametrize("name", ["../x", "a b/c", "paper-pickplace-30k"])
 def test_the_report_path_a_study_prints_is_where_its_report_goes(name):
-    """The ablation, sweep and post-processing summaries print experiments.tracking.report_index; the report
+    """The ablation, sweep and post-processing summaries print experiments.runtime.tracking.report_index; the report
     builds in DEFAULT_OUT/<Study.slug>/ (a name that is no file name is made one, the same way in both)."""
     import pandas as pd
 
-    from experiments.tracking import report_index
+    from experiments.runtime.tracking import report_index
     from reports.__main__ import DEFAULT_OUT
-    from reports.store import Study
+    from reports.data.store import Study
 
     study = Study("ablation", {"run_id": "r", "tags.study_name": name}, pd.DataFrame(), client=None)
     assert report_index(name) == f"{DEFAULT_OUT.as_posix()}/{study.slug}/index.html"
@@ -509,7 +509,7 @@ def test_a_packs_training_time_is_reported_once_not_as_a_spread_over_seeds():
 
     import pandas as pd
 
-    from reports.tables import train_time_summary, train_time_table
+    from reports.study_report.tables import train_time_summary, train_time_table
     runs = pd.DataFrame({"task": ["reacher"] * 5, "variant": ["lstm"] * 3 + ["ac-lstm"] * 2, "seed": [0, 1, 2, 0, 1],
                          "metrics.time/train_seconds": [1803.45, 1803.47, 1803.47, 900.0, 1100.0],
                          "tags.worker": ["vm:1", "vm:1", "vm:1", "vm:2", "vm:3"], "status": "FINISHED"})
@@ -529,7 +529,7 @@ def test_comparisons_pair_the_seeds_that_saw_the_same_episodes():
 
     import pandas as pd
 
-    from reports import comparisons
+    from reports.results import comparisons
 
     def study(name, rows):  # rows: (variant, seed, success rate, episode seed)
         evals = pd.DataFrame([{"run_id": f"{name}-{v}-{s}", "status": "FINISHED", "task": "reacher", "variant": v,

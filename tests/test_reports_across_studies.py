@@ -1,7 +1,7 @@
 """The placeholders over several studies, on real smoke ablations of reacher's LSTM (6 straight demonstrations;
 4 demonstrations, half of them switching goal) and of its a.c. LSTM (6 straight ones): {{ data_scaling(...) }}
-(reports.data_scaling) as one curve, {{ lever(...) }} (reports.levers) telling the two apart by their
-settings, {{ goal_switch(...) }} (reports.goal_switch) from their changing-goal rollouts."""
+(reports.analyses.data_scaling) as one curve, {{ lever(...) }} (reports.analyses.levers) telling the two apart by their
+settings, {{ goal_switch(...) }} (reports.analyses.goal_switch) from their changing-goal rollouts."""
 
 from __future__ import annotations
 
@@ -64,9 +64,9 @@ def test_one_curve_from_two_studies(store, tmp_path):
 
 
 def test_each_study_sits_at_its_own_number_of_demonstrations(store):
-    from reports.data_scaling import scaling_rows
-    from reports.selection import Selection
-    from reports.store import Store
+    from reports.analyses.data_scaling import scaling_rows
+    from reports.data.store import Store
+    from reports.results.selection import Selection
 
     selection = Selection(Store(f"sqlite:///{store / 'mlflow.db'}"))
     agg = scaling_rows([selection.pick(name, ("ablation",)) for name in ("demos6", "demos4")], "reacher")
@@ -78,9 +78,9 @@ def test_each_study_sits_at_its_own_number_of_demonstrations(store):
 def test_studies_of_other_variants_share_a_number_of_demonstrations(store):
     """A variant trained later in a study of its own joins the curve at the same count; one variant twice at
     one count is an error (test_the_same_study_twice_is_one_line)."""
-    from reports.data_scaling import DataScalingError, scaling_rows
-    from reports.selection import Selection
-    from reports.store import Store
+    from reports.analyses.data_scaling import DataScalingError, scaling_rows
+    from reports.data.store import Store
+    from reports.results.selection import Selection
 
     selection = Selection(Store(f"sqlite:///{store / 'mlflow.db'}"))
     pick = lambda name: selection.pick(name, ("ablation",))  # noqa: E731

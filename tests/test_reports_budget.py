@@ -1,5 +1,5 @@
-"""The training-budget table (reports.tables.budget_table): the iterations each cell got, from the runs' own
-params, metrics and checkpoint tags, for finished, still-training and queued runs."""
+"""The training-budget table (reports.study_report.tables.budget_table): the iterations each cell got, from the
+runs' own params, metrics and checkpoint tags, for finished, still-training and queued runs."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import shutil
 import pytest
 from mlflow.tracking import MlflowClient
 
-from experiments.tracking import PARENT_TAG
-from reports.store import Store
-from reports.tables import budget_table
+from experiments.runtime.tracking import PARENT_TAG
+from reports.data.store import Store
+from reports.study_report.tables import budget_table
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""Study exports (reports.export, reports.studyimport): a real smoke ablation and smoke sweep (conftest's
+"""Study exports (reports.data.export, reports.data.studyimport): a real smoke ablation and smoke sweep (conftest's
 results_store, built through the experiments CLI) exported through the reports CLI, checked for portability and
 determinism, imported back, and RESULTS.md rendered from the exports alone against the original store."""
 
@@ -18,7 +18,7 @@ from cli_helpers import cli_env
 from mlflow import MlflowClient
 
 from reports.__main__ import main
-from reports.export import MAX_HISTORY, RUNS_FILE, thin
+from reports.data.export import MAX_HISTORY, RUNS_FILE, thin
 
 pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[1]
@@ -232,9 +232,9 @@ def test_corrupt_export_is_one_line_and_imports_nothing(exports, tmp_path, capsy
 
 
 def test_failed_import_leaves_no_run_behind(exports, tmp_path, monkeypatch):
-    from experiments import tracking
-    from reports.export import ExportError
-    from reports.studyimport import import_exports
+    from experiments.runtime import tracking
+    from reports.data.export import ExportError
+    from reports.data.studyimport import import_exports
 
     calls = []
 

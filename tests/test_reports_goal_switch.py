@@ -1,4 +1,4 @@
-"""reports.goal_switch: the anatomy of the changing-goal reacher's failures from the rollouts (hand-made
+"""reports.analyses.goal_switch: the anatomy of the changing-goal reacher's failures from the rollouts (hand-made
 episodes whose answers are known), and its figure."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from reports.goal_switch import MOVING, episode_facts, min_jerk_remaining, switch_figure, switch_table
+from reports.analyses.goal_switch import MOVING, episode_facts, min_jerk_remaining, switch_figure, switch_table
 
 GOAL, NEW = np.array([0.6, 0.0, 0.1]), np.array([0.6, 0.3, 0.1])
 H, K = 20, 10  # horizon and switch step of the hand-made episodes

@@ -1,4 +1,4 @@
-"""{{ lever(...) }} (reports.levers): a lever's studies side by side, each labelled by the settings that set it
+"""{{ lever(...) }} (reports.analyses.levers): a lever's studies side by side, each labelled by the settings that set it
 apart (read from the runs' params): checks on hand-made studies (the real ones: test_reports_across_studies)."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from reports.across import at_iteration
-from reports.levers import LeverError, setting_labels, study_settings
-from reports.store import Study
+from reports.analyses.levers import LeverError, setting_labels, study_settings
+from reports.data.store import Study
+from reports.results.across import at_iteration
 
 
 def _study(name: str, variants: tuple[str, ...] = ("lstm",), **params: object) -> Study:
@@ -60,7 +60,7 @@ def test_twin_studies_and_runs_that_disagree_are_errors():
 def test_a_milestones_stage_is_set_beside_a_study_trained_that_long():
     """STUDY@ITERATION: the checkpoints a milestones study kept at that iteration, whose train.iters reads as the
     iteration they trained; a stage the study did not keep is an error that lists the kept ones."""
-    from reports.store import StoreError
+    from reports.data.store import StoreError
 
     stages = pd.concat([_study("m", **{"train.iters": "30000", "milestone.iteration": str(it)}).children
                         for it in (5000, 10000)], ignore_index=True)
@@ -80,9 +80,9 @@ def test_a_milestones_stage_is_set_beside_a_study_trained_that_long():
 
 
 def test_a_template_names_a_stage_and_provenance_keeps_the_whole_study():
-    from reports.across import whole_study
-    from reports.results import _named_studies
-    from reports.template import Placeholder, ResultsError
+    from reports.results.across import whole_study
+    from reports.results.template import Placeholder, ResultsError
+    from reports.results.writer import _named_studies
 
     stages = pd.concat([_study("m", **{"milestone.iteration": str(it)}).children for it in (5000, 10000)],
                        ignore_index=True)
@@ -104,8 +104,8 @@ def test_a_template_names_a_stage_and_provenance_keeps_the_whole_study():
 def test_two_stages_of_one_study_get_their_own_success_tables(tmp_path):
     """NAME@5000 and NAME@10000 share the milestones study's parent run: each table is of its own stage (both
     once read the first stage's), and what the template used is the whole study (its provenance)."""
-    from reports.results import Results
-    from reports.template import Placeholder
+    from reports.results.template import Placeholder
+    from reports.results.writer import Results
 
     def stage(it: int, rate: float) -> pd.DataFrame:
         return _study("m", **{"milestone.iteration": str(it)}).children.assign(**{

@@ -1,4 +1,4 @@
-"""reports.multimodal on a real tiny study: a smoke-sized ablation of both multimodal tasks through the
+"""reports.analyses.multimodal on a real tiny study: a smoke-sized ablation of both multimodal tasks through the
 experiments CLI (two seeds), then the table (success, intervals, mode split) and the mode-coloured paths."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from cli_helpers import run_cli
 from oracles import drawn_colours, is_pdf, wilson
 
-from reports.multimodal import (
+from reports.analyses.multimodal import (
     feedback_table,
     mode_paths,
     multimodal_markdown,
@@ -18,7 +18,7 @@ from reports.multimodal import (
     multimodal_tasks,
     rollout_feedback_of,
 )
-from reports.store import Store
+from reports.data.store import Store
 
 TASKS = ("reacher-obstacle-multimodal", "reacher-posture-multimodal")
 ROLLOUTS, SEEDS = 4, 2

@@ -1,4 +1,4 @@
-"""RESULTS.md generation (reports.results, `python -m reports --results`) from a real smoke store: a smoke
+"""RESULTS.md generation (reports.results.writer, `python -m reports --results`) from a real smoke store: a smoke
 ablation and a small smoke sweep run with the experiments CLI into a temporary MLflow store, then the
 template rendered into a temporary folder (never reports/RESULTS.md)."""
 
@@ -15,7 +15,7 @@ from mlflow import MlflowClient
 from PIL import Image
 
 from reports import paper
-from reports.results import MAX_FIGURE_WIDTH, ResultsError, parse_template, portable_uri, regeneration_command
+from reports.results.writer import MAX_FIGURE_WIDTH, ResultsError, parse_template, portable_uri, regeneration_command
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -156,7 +156,7 @@ def test_twice_gives_the_same_bytes(store, rendered, tmp_path):
 
 
 def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypatch):
-    from reports import results
+    from reports.results import writer
 
     template = '{{ figure("success_bars") }}\n\n{{ figure("train_time") }}\n'
     assert _main(store, tmp_path, template=template) == 0
@@ -164,7 +164,7 @@ def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypa
 
     def broken(*_):
         raise RuntimeError("data the builder did not foresee")
-    monkeypatch.setitem(results.ABLATION_FIGURES, "success_bars", broken)
+    monkeypatch.setitem(writer.ABLATION_FIGURES, "success_bars", broken)
     assert _main(store, tmp_path, template=template) == 0
     text = (tmp_path / "docs" / "RESULTS.md").read_text()
     assert "figure unavailable: success_bars" in text and "RuntimeError: data the builder did not foresee" in text

@@ -1,4 +1,4 @@
-"""reports.stacking: which block the stacking episodes get to, from the rollouts (hand-made episodes whose
+"""reports.analyses.stacking: which block the stacking episodes get to, from the rollouts (hand-made episodes whose
 answers are known), its table and figure; the real rollouts: the RESULTS.md regeneration test."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from reports.stacking import REACH, episode_facts, shares, stacking_figure, stacking_table
+from reports.analyses.stacking import REACH, episode_facts, shares, stacking_figure, stacking_table
 
 SUB = 10  # steps per sub-episode of the hand-made episodes
 GRASP = np.array([0.55, -0.20, -0.12])

@@ -1,4 +1,4 @@
-"""New SQLite stores copied from the empty-store template (experiments/schema_template.py) are what MLflow
+"""New SQLite stores copied from the empty-store template (experiments/runtime/schema_template.py) are what MLflow
 itself would create: same schema and version, the default experiment with the new store's own artifact
 location; a damaged template is rebuilt, and without a usable cache MLflow creates the store as before."""
 
@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
-from experiments import schema_template
-from experiments.tracking import Client
+from experiments.runtime import schema_template
+from experiments.runtime.tracking import Client
 
 
 def _schema(db: Path) -> tuple[set, str]:

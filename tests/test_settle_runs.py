@@ -1,5 +1,5 @@
 """Commands of one study started at once settle on one parent run and one run per cell
-(experiments/tracking.py get_or_create_parent_run, experiments/ablation.py prepare_runs).
+(experiments/runtime/tracking.py get_or_create_parent_run, experiments/ablation.py prepare_runs).
 MLflow stamps a run's start_time on the client before its insert commits, so a run that started
 earlier can become visible later: each race below injects such a late commit while the command
 waits out its settle window, on a real SQLite store. The PostgreSQL soak test met the last one
@@ -15,7 +15,7 @@ import pytest
 
 @pytest.fixture
 def store(tmp_path: Path):
-    from experiments.tracking import Client, get_or_create_experiment
+    from experiments.runtime.tracking import Client, get_or_create_experiment
 
     client = Client(f"sqlite:///{tmp_path / 'mlflow.db'}")
     return client, get_or_create_experiment(client, "ablation")
@@ -37,13 +37,13 @@ def _late_commit(monkeypatch, module, create):
 
 def _cells(n: int):
     from experiments.cells import build_cells
-    from experiments.config import load_profile
+    from experiments.study_config import load_profile
 
     return build_cells(load_profile("smoke", seeds=n))[:n]
 
 
 def test_a_parent_run_committed_late_but_started_earlier_wins_and_ours_is_deleted(store, monkeypatch):
-    from experiments import tracking
+    from experiments.runtime import tracking
 
     client, exp = store
     made = _late_commit(monkeypatch, tracking, lambda ms: client.create_run(
@@ -61,7 +61,7 @@ def test_a_parent_run_committed_late_but_started_earlier_wins_and_ours_is_delete
 
 def test_a_cell_run_committed_late_but_started_earlier_wins_and_ours_is_deleted(store, monkeypatch):
     from experiments import ablation
-    from experiments.tracking import PARENT_TAG
+    from experiments.runtime.tracking import PARENT_TAG
 
     client, exp = store
     parent = client.create_run(exp).info.run_id
@@ -79,7 +79,7 @@ def test_a_command_never_deletes_a_cell_run_it_did_not_create(store):
     earlier and leaves the later alone, though it is RUNNING and unclaimed -- its creator is
     about to withdraw it or to train it, and a run deleted under its trainer fails it."""
     from experiments.ablation import prepare_runs
-    from experiments.tracking import PARENT_TAG
+    from experiments.runtime.tracking import PARENT_TAG
 
     client, exp = store
     parent = client.create_run(exp).info.run_id
@@ -99,7 +99,7 @@ def test_params_another_command_logs_at_the_same_moment_are_no_error(store, monk
     the run again and records only what differs (as a `changed.` tag), as the PostgreSQL soak met."""
     from mlflow.entities import Param
 
-    from experiments.tracking import log_params
+    from experiments.runtime.tracking import log_params
 
     client, exp = store
     run_id = client.create_run(exp).info.run_id

@@ -6,8 +6,8 @@ import torch
 from PIL import Image
 
 from envs.robot import NEUTRAL_Q
-from stm.plans import FOUR_GOALS, jittery_skeletons, straight_line_plans
-from stm.smoothing import smooth_exact, smooth_gd, smoothing_objective, smoothness_metrics
+from stm.control.plans import FOUR_GOALS, jittery_skeletons, straight_line_plans
+from stm.control.smoothing import smooth_exact, smooth_gd, smoothing_objective, smoothness_metrics
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def test_bad_shapes_raise_clear_errors():
 
 @pytest.mark.slow
 def test_smoothing_study_writes_figure_and_metrics(tmp_path):
-    from stm.smoothing import smoothing_study
+    from stm.control.smoothing import smoothing_study
 
     res = smoothing_study(steps=20, out_dir=tmp_path)
     assert res["gd_vs_exact_max_abs_rad"] < 1e-6
@@ -92,8 +92,8 @@ def test_smoothing_study_writes_figure_and_metrics(tmp_path):
 def test_stm_plans_start_at_q_start():
     from envs.tasks.registry import get_task
     from stm.config import ModelConfig
+    from stm.control.plans import stm_plans
     from stm.model import STM
-    from stm.plans import stm_plans
 
     torch.manual_seed(0)
     model = STM(ModelConfig(hidden_size=8, num_layers=1, mixtures=2), get_task("reacher").layout)

@@ -31,7 +31,7 @@ def _cells(client: MlflowClient) -> dict[str, object]:
 
 
 def _weights(client: MlflowClient, run_id: str, tmp) -> dict[str, torch.Tensor]:
-    from stm.checkpoint import load_checkpoint
+    from stm.training.checkpoint import load_checkpoint
 
     return load_checkpoint(client.download_artifacts(run_id, "checkpoint_at/100/model.pt", str(tmp)))["model"]
 

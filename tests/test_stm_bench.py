@@ -1,5 +1,5 @@
 """Benchmarks (nox -s bench): one training iteration per schedule at the reacher size, and
-1,000 reacher rollouts. Compare the rows of one run; `python -m stm.bench` prints the ratios."""
+1,000 reacher rollouts. Compare the rows of one run; `python -m stm.speed.bench` prints the ratios."""
 
 import numpy as np
 import pytest
@@ -7,14 +7,14 @@ import torch
 
 from envs.robot import NEUTRAL_Q
 from envs.tasks.base import Episode
-from stm.autoconditioning import batch_loss
-from stm.batches import DemoTensors
-from stm.bench import SIZES, BenchTask, _packed_step, bench_demos
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed_rollout import generate_packed
 from stm.rollout import generate
+from stm.speed.bench import SIZES, BenchTask, _packed_step, bench_demos
+from stm.training.autoconditioning import batch_loss
+from stm.training.batches import DemoTensors
 
 pytestmark = pytest.mark.bench
 

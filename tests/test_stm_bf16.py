@@ -7,16 +7,16 @@ import pytest
 import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
-from stm.autoconditioning import batch_loss, unroll
-from stm.batches import DemoTensors
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
-from stm.floor import record_matmuls
 from stm.lstm_step import product_dtype
 from stm.model import STM, normalization_stats
 from stm.packed import PackedSTM
-from stm.registry import VARIANTS
-from stm.train import train
+from stm.speed.floor import record_matmuls
+from stm.training.autoconditioning import batch_loss, unroll
+from stm.training.batches import DemoTensors
+from stm.training.loop import train
+from stm.variants import VARIANTS
 
 KIN = default_tip_kinematics(torch.float32)
 MODEL = ModelConfig(hidden_size=32, num_layers=3, mixtures=3)

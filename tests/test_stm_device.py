@@ -7,14 +7,14 @@ import pytest
 import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
-import stm.train
-from stm.batches import DemoTensors
+import stm.training.loop
 from stm.config import ModelConfig, TrainConfig
-from stm.cuda_graph import capturable
 from stm.device import DeviceError, check_device_name, resolve_device
 from stm.fk import default_tip_kinematics
-from stm.registry import VARIANTS
-from stm.train import train, train_packed
+from stm.training.batches import DemoTensors
+from stm.training.cuda_graph import capturable
+from stm.training.loop import train, train_packed
+from stm.variants import VARIANTS
 
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
 BASE = TrainConfig(iters=6, batch_size=4, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0)
@@ -58,7 +58,7 @@ def test_device_cpu_trains_bit_identically_to_the_default(toy):
 
 
 class EagerGraphs:
-    """stm.cuda_graph.StepGraphs without the capture: runs the iteration the graph would replay, eagerly."""
+    """stm.training.cuda_graph.StepGraphs without the capture: runs the iteration the graph would replay, eagerly."""
 
     def __init__(self, params):
         self.params, self.keys = params, []
@@ -79,8 +79,8 @@ def test_the_graphed_iteration_trains_as_the_eager_one(toy, monkeypatch, variant
     cfgs = [TrainConfig.from_dict({**cfg.to_dict(), "seed": s, "tf_warmup": w}) for s, w in ((0, 2), (1, 0))]
     eager = train_packed(model_cfg, cfgs, task, demos)
     made = []
-    monkeypatch.setattr(stm.train, "use_graphs", lambda device, c: True)
-    monkeypatch.setattr(stm.train, "StepGraphs", lambda params: made.append(EagerGraphs(params)) or made[-1])
+    monkeypatch.setattr(stm.training.loop, "use_graphs", lambda device, c: True)
+    monkeypatch.setattr(stm.training.loop, "StepGraphs", lambda params: made.append(EagerGraphs(params)) or made[-1])
     graphed = train_packed(model_cfg, cfgs, task, demos)
     longest = int(max(demos.lengths))
     assert made and {k[1][2] for k in made[0].keys} == {longest + 1}  # static: every batch padded to all demos
@@ -96,7 +96,7 @@ def test_what_a_graph_cannot_replay_stays_eager():
     assert not capturable(TrainConfig(input_noise=0.1))  # drawn from each seed's CPU generator
     assert not capturable(TrainConfig(feedback="sample"))
     assert not capturable(TrainConfig(window=5))  # lengths vary
-    assert not stm.train.use_graphs(torch.device("cpu"), TrainConfig())
+    assert not stm.training.loop.use_graphs(torch.device("cpu"), TrainConfig())
 
 
 def test_kinematics_and_batches_move_to_a_device(toy):
@@ -118,7 +118,7 @@ def test_kinematics_and_batches_move_to_a_device(toy):
 
 
 def test_bench_takes_a_device(monkeypatch, capsys):
-    from stm import bench
+    from stm.speed import bench
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     for bad, message in (("tpu", "unknown device 'tpu'"), ("cuda", "torch sees no CUDA GPU here")):

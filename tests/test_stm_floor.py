@@ -1,4 +1,4 @@
-"""stm.floor: an iteration's matrix products, recorded forward and backward and replayed alone."""
+"""stm.speed.floor: an iteration's matrix products, recorded forward and backward and replayed alone."""
 
 import math
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from stm.floor import record_matmuls, replayer
+from stm.speed.floor import record_matmuls, replayer
 
 
 def _macs(calls) -> int:

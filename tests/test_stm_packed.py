@@ -1,5 +1,5 @@
-"""Packed training (stm.train.train_packed) trains each seed as stm.train.train trains it alone (a pack of one):
-same loss curve, weights and rollouts, for the four variants; a diverging seed leaves the pack
+"""Packed training (stm.training.loop.train_packed) trains each seed as stm.training.loop.train trains it alone
+(a pack of one): same loss curve, weights and rollouts, for the four variants; a diverging seed leaves the pack
 without disturbing the others; each seed checkpoints and resumes on its own.
 
 Tolerances: a pack of K > 1 runs ground-truth chunks through its batched layer sequence where a pack
@@ -18,13 +18,13 @@ import pytest
 import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
-from stm.checkpoint import load_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.packed import PackedSTM
 from stm.packed_rollout import generate_packed
-from stm.registry import VARIANTS
 from stm.rollout import generate
-from stm.train import check_packable, train, train_packed
+from stm.training.checkpoint import load_checkpoint
+from stm.training.loop import check_packable, train, train_packed
+from stm.variants import VARIANTS
 
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
 BASE = TrainConfig(iters=8, batch_size=4, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0)
@@ -172,9 +172,9 @@ def test_unpackable_configs_are_refused():
 
 
 def test_bench_reports_packed_speedups(monkeypatch, capsys):
-    """`python -m stm.bench --json` gives each training entry packed_k and the packed speedups,
+    """`python -m stm.speed.bench --json` gives each training entry packed_k and the packed speedups,
     (K x one model's ms/iter) / (the pack's ms/iter), here at a tiny size (the numbers are not checked)."""
-    from stm import bench
+    from stm.speed import bench
 
     monkeypatch.setitem(bench.SIZES, "reacher", dict(hidden=8, mixtures=2, batch=4, steps=6, gripper=False))
     out = bench.main(["--json", "--sizes", "reacher", "--rounds", "1", "--reps", "1", "--no-rollouts"])
@@ -205,7 +205,7 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
 
 
 def test_matmul_share_tells_products_from_elementwise_ops():
-    from stm.bench import matmul_share, packing_ceiling
+    from stm.speed.bench import matmul_share, packing_ceiling
 
     a, b = torch.randn(256, 256), torch.randn(256, 256)
     assert matmul_share(lambda: [a @ b for _ in range(5)]) > 0.95
@@ -222,7 +222,7 @@ def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(
     import signal
     import threading
 
-    import stm.train
+    import stm.training.loop
 
     if threading.current_thread() is not threading.main_thread():
         pytest.skip("signals reach the main thread only")
@@ -230,7 +230,7 @@ def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(
     model_cfg, cfgs = _configs("ac-lstm-mdn", checkpoint_every=3, feedback="sample")
     paths = [tmp_path / f"s{s}.pt" for s in SEEDS]
     full = train_packed(model_cfg, cfgs, task, demos)
-    real, calls = stm.train.unroll, []
+    real, calls = stm.training.loop.unroll, []
 
     def unroll_then_ctrl_c(*args, **kwargs):
         calls.append(1)
@@ -239,7 +239,7 @@ def test_ctrl_c_mid_step_checkpoints_every_seed_there_and_a_resume_matches(
             signal.raise_signal(signal.SIGINT)
         return out
 
-    monkeypatch.setattr(stm.train, "unroll", unroll_then_ctrl_c)
+    monkeypatch.setattr(stm.training.loop, "unroll", unroll_then_ctrl_c)
     seen = []
     with pytest.raises(KeyboardInterrupt):
         train_packed(model_cfg, cfgs, task, demos, checkpoint_paths=paths,

@@ -1,7 +1,7 @@
 import pytest
 
 from stm.config import ModelConfig, TrainConfig
-from stm.registry import VARIANTS, UnknownVariantError, get_variant
+from stm.variants import VARIANTS, UnknownVariantError, get_variant
 
 
 def test_the_four_variants():

@@ -6,8 +6,8 @@ from envs.kinematics import tip_position_np
 from envs.tasks.base import Episode
 from stm.config import ModelConfig, TrainConfig
 from stm.rollout import evaluate, generate
-from stm.train import train
-from stm.validation import demo_episodes
+from stm.training.loop import train
+from stm.training.validation import demo_episodes
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The optimised auto-conditioned unroll (stm.autoconditioning.unroll: fused/stepped ground-truth chunks,
+"""The optimised auto-conditioned unroll (stm.training.autoconditioning.unroll: fused/stepped ground-truth chunks,
 a feedback head cut to the rows it reads with the denormalisation folded in, the hand-written
 LSTM stack step of stm.lstm_step with the input normalisation folded in, deferred weight gradients)
 computes the same loss and gradients as a straightforward step-by-step reference."""
@@ -7,12 +7,12 @@ import pytest
 import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
-from stm.autoconditioning import batch_loss, schedule
-from stm.batches import DemoTensors
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.lstm_step import StackStepper
 from stm.model import STM, feedback_state, normalization_stats
+from stm.training.autoconditioning import batch_loss, schedule
+from stm.training.batches import DemoTensors
 
 KIN = default_tip_kinematics(torch.float32)
 

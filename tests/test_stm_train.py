@@ -5,14 +5,14 @@ import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import default_kinematics
-from stm.autoconditioning import batch_loss, schedule, segments
-from stm.autoconditioning import unroll_model as unroll
-from stm.batches import DemoTensors
-from stm.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, load_model, save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.model import STM, feedback_state, normalization_stats
 from stm.packed import PackedSTM
-from stm.train import TrainingDiverged, train
+from stm.training.autoconditioning import batch_loss, schedule, segments
+from stm.training.autoconditioning import unroll_model as unroll
+from stm.training.batches import DemoTensors
+from stm.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, load_model, save_checkpoint
+from stm.training.loop import TrainingDiverged, train
 
 KIN = default_kinematics(torch.float32)
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
@@ -217,7 +217,7 @@ def test_input_noise_only_perturbs_ground_truth_inputs_in_training(toy):
 def test_validation_uses_fresh_episodes_when_the_task_has_a_kinematic_error():
     import numpy as np
 
-    from stm.validation import VAL_SEED, Validation
+    from stm.training.validation import VAL_SEED, Validation
 
     class ToyWithError(ToyReach):
         def kinematic_error(self, tip, episode):
@@ -285,7 +285,7 @@ def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(
     import signal
     import threading
 
-    import stm.train
+    import stm.training.loop
 
     if threading.current_thread() is not threading.main_thread():
         pytest.skip("signals reach the main thread only")
@@ -293,7 +293,7 @@ def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(
     cfg = TrainConfig(iters=12, batch_size=4, lr=3e-3, u=2, v=2, feedback="sample", checkpoint_every=5,
                       log_every=1, seed=3)
     full = train(TINY, cfg, task, demos)
-    real, calls = stm.train.unroll, []
+    real, calls = stm.training.loop.unroll, []
 
     def loss_then_ctrl_c(*args, **kwargs):
         calls.append(1)
@@ -302,7 +302,7 @@ def test_ctrl_c_mid_step_checkpoints_that_whole_step_and_a_resume_matches(
             signal.raise_signal(signal.SIGINT)
         return out
 
-    monkeypatch.setattr(stm.train, "unroll", loss_then_ctrl_c)
+    monkeypatch.setattr(stm.training.loop, "unroll", loss_then_ctrl_c)
     path, seen = tmp_path / "ckpt.pt", []
     with pytest.raises(KeyboardInterrupt):
         train(TINY, cfg, task, demos, checkpoint_path=path, on_checkpoint=lambda p, it: seen.append(it))

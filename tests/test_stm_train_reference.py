@@ -1,5 +1,5 @@
 """The training loop reproduces the results of the code it replaced: tests/data/stm_train_reference.pt holds what
-the separate single-model and packed training loops (stm/train.py and stm/packed_train.py at commit 66579d5)
+the separate single-model and packed training loops (stm/training/loop.py and stm/packed_train.py at commit 66579d5)
 computed for the four variants and for two cases that take the other paths of the auto-conditioned unroll
 (sampled feedback with input noise, u = 3 and active clipping; windows with burn-in and held demos): per seed,
 trained alone and two seeds packed, the losses and gradient norms of 8 iterations, the weights after them and
@@ -19,11 +19,11 @@ import pytest
 import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
-from stm.checkpoint import save_checkpoint
 from stm.config import ModelConfig, TrainConfig
 from stm.packed_rollout import generate_packed
 from stm.rollout import generate
-from stm.train import train, train_packed
+from stm.training.checkpoint import save_checkpoint
+from stm.training.loop import train, train_packed
 
 REFERENCE = Path(__file__).parent / "data" / "stm_train_reference.pt"
 LOSS_TOL, GRAD_NORM_RTOL, WEIGHT_TOL, ROLLOUT_TOL = 1e-5, 1e-4, 1e-6, 1e-5

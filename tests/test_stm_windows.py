@@ -1,4 +1,4 @@
-"""Windowed training with burn-in (stm.windows): windows lie in their demonstrations and cover every step
+"""Windowed training with burn-in (stm.training.windows): windows lie in their demonstrations and cover every step
 equally often; a burn-in that reaches the demonstration's start gives exactly the state of a
 whole-demonstration unroll; a window config trains (packed training equals it: tests/test_stm_packed.py)."""
 
@@ -8,12 +8,12 @@ import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import default_kinematics
-from stm.autoconditioning import unroll_model as unroll
-from stm.batches import DemoTensors
 from stm.config import ModelConfig, TrainConfig
 from stm.model import STM, normalization_stats
-from stm.train import train
-from stm.windows import sample_windows
+from stm.training.autoconditioning import unroll_model as unroll
+from stm.training.batches import DemoTensors
+from stm.training.loop import train
+from stm.training.windows import sample_windows
 
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
 

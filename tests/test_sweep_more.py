@@ -39,7 +39,7 @@ def test_grid_sampler_covers_its_grid_exactly_once(tmp_path):
 
 
 def test_journal_sweep_recovers_a_killed_sweeps_trial_and_runs_two_workers(tmp_path):
-    from experiments.sweep import MlflowTrialLink
+    from experiments.sweeps.runner import MlflowTrialLink
 
     args = ["sweep", "--profile", "smoke", "--sampler", "random", "--study-name", "j"]
     first = run_cli([*args, "--workers", "1", "--trials", "1"], tmp_path)

@@ -231,3 +231,25 @@ def test_goal_switch_demonstrations_replan_to_the_new_goal_after_the_grasp():
     assert task.config() != get_task("pick-place").config()
     with pytest.raises(ValueError, match="goal_switches must be a fraction"):
         get_task("pick-place", goal_switches=-0.1)
+
+
+def test_start_joint_range_widens_the_starts_of_training_and_evaluation():
+    """The start-range lever: starts spread with the range (tip still in START_BOX), the dataset's cache key
+    changes only off the default, and the model's evaluation tasks (stacking, changing goal) inherit it."""
+    from envs.tasks.pickplace import NEUTRAL_Q, START_BOX, START_JOINT_RANGE, tip_poses
+
+    spreads = {}
+    for r in (START_JOINT_RANGE, 0.3):
+        q = get_task("pick-place", start_joint_range=r).sample_starts(np.random.default_rng(5), 64)
+        assert np.all(np.abs(q - NEUTRAL_Q) <= r + 1e-9)
+        tip, _ = tip_poses(q)
+        assert all(np.all((tip[:, i] >= lo) & (tip[:, i] <= hi)) for i, (lo, hi) in enumerate(START_BOX))
+        spreads[r] = np.abs(q - NEUTRAL_Q).max()
+    assert spreads[0.3] > 2 * spreads[START_JOINT_RANGE] * 0.9
+    assert get_task("pick-place", start_joint_range=START_JOINT_RANGE).config() == get_task("pick-place").config()
+    assert get_task("pick-place", start_joint_range=0.3).config()["start_joint_range"] == 0.3
+    for name in ("pick-place", "stack", "pick-place-changing-goal"):
+        task = type(get_task(name)).for_evaluation({"start_joint_range": 0.2, "n_demos": 15, "retreat_starts": 0.3})
+        assert task.start_joint_range == 0.2 and task.retreat_starts == 0.0
+    with pytest.raises(ValueError, match="start_joint_range must be in"):
+        get_task("pick-place", start_joint_range=-0.1)

@@ -156,7 +156,8 @@ class PickPlace(Task):
     model_task = "pick-place"
     step_seconds = STEP_SECONDS
     report_rank = 20
-    episode_options = ("min_steps", "max_steps")  # not retreat_starts: a training-data lever
+    # the start range shapes the evaluation's episodes too; retreat_starts is a training-data lever only
+    episode_options = ("start_joint_range", "min_steps", "max_steps")
     block_size = BLOCK_SIZE
     success_criterion = (f"block upright within {XY_TOL * 100:g} cm (xy) and {Z_TOL * 100:g} cm (z) of the goal, "
                          f"released, gripper clear")
@@ -167,7 +168,10 @@ class PickPlace(Task):
     )
 
     def __init__(self, n_demos: int = 150, min_steps: int = MIN_STEPS, max_steps: int = MAX_STEPS,
-                 retreat_starts: float = RETREAT_STARTS, goal_switches: float = 0.0):
+                 retreat_starts: float = RETREAT_STARTS, goal_switches: float = 0.0,
+                 start_joint_range: float = START_JOINT_RANGE):
+        """start_joint_range: half-width (rad) of the uniform start range around NEUTRAL_Q (the
+        start-range lever; the tip must still start in START_BOX, so wide ranges are filtered)."""
         if n_demos < 1:
             raise ValueError(f"n_demos must be >= 1, got {n_demos}")
         if not FIXED_STEPS + 10 <= min_steps <= max_steps:
@@ -175,13 +179,16 @@ class PickPlace(Task):
         for name, value in (("retreat_starts", retreat_starts), ("goal_switches", goal_switches)):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be a fraction in [0, 1], got {value}")
+        if not 0.0 <= start_joint_range <= np.pi:
+            raise ValueError(f"start_joint_range must be in [0, pi] rad, got {start_joint_range}")
+        self.start_joint_range = float(start_joint_range)
         self.n_demos, self.min_steps, self.max_steps = n_demos, min_steps, max_steps
         self.retreat_starts, self.goal_switches = float(retreat_starts), float(goal_switches)
 
     def config(self) -> dict[str, Any]:
         return {
             "task": "pick-place", "n_demos": self.n_demos, "min_steps": self.min_steps,
-            "max_steps": self.max_steps, "step_seconds": STEP_SECONDS, "start_joint_range": START_JOINT_RANGE,
+            "max_steps": self.max_steps, "step_seconds": STEP_SECONDS, "start_joint_range": self.start_joint_range,
             "start_box": START_BOX, "goal_region": GOAL_REGION, "levels": LEVELS, "pick_xy": PICK_XY,
             "block_size": BLOCK_SIZE, "block_mass": BLOCK_MASS, "block_friction": BLOCK_FRICTION,
             "finger_friction": FINGER_FRICTION, "gripper_force": GRIPPER_FORCE, "grasp_height": GRASP_HEIGHT,
@@ -212,7 +219,8 @@ class PickPlace(Task):
         lo, hi = _box_lo_hi(START_BOX)
         out: list[np.ndarray] = []
         while len(out) < n:
-            q = LIMITS.clip(NEUTRAL_Q + rng.uniform(-START_JOINT_RANGE, START_JOINT_RANGE, size=(n, 7)))
+            r = self.start_joint_range
+            q = LIMITS.clip(NEUTRAL_Q + rng.uniform(-r, r, size=(n, 7)))
             tip, _ = tip_poses(q)
             out.extend(q[np.all((tip >= lo) & (tip <= hi), axis=1)])
         return np.array(out[:n])

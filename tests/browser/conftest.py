@@ -101,7 +101,7 @@ def mlflow_ui(store: Path) -> Iterator[str]:
 
 @pytest.fixture(scope="session")
 def dashboard(store: Path) -> Iterator[str]:
-    yield from _serve(["-m", "experiments.dashboard"], store, "/api/studies")
+    yield from _serve(["-m", "experiments.sweeps.dashboard"], store, "/api/studies")
 
 
 @pytest.fixture(scope="session")

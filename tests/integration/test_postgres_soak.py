@@ -1,6 +1,6 @@
 """Soak on PostgreSQL: four `ablation --worker` commands (as on four hosts) share one cell queue
 (Optuna RDB storage) and one MLflow tracking server, both on PostgreSQL. The first worker starts
-alone and holds at its first checkpoint (the fault hook, experiments/worker.py), the three others
+alone and holds at its first checkpoint (the fault hook, experiments/cell_run.py), the three others
 join, and the first is killed with SIGKILL where it holds: so at least one worker is always
 caught mid-cell, however fast the cells train. After that, every minute one worker caught
 training a cell is killed (if any still is), and a fresh one takes each victim's place. At the

@@ -123,7 +123,7 @@ def test_ablation_workers_share_a_cell_queue_and_one_is_killed(postgres, mlflow_
             "--set", "eval.rollouts=2", "--set", "sweep.heartbeat=1", "--set", "sweep.grace_period=4"]
     client = MlflowClient(mlflow_server.url)
     signals = tmp_path / "signals"
-    # both join at once; the victim holds at its cell's first checkpoint (experiments/worker.py's test
+    # both join at once; the victim holds at its cell's first checkpoint (experiments/cell_run.py's test
     # hook) and is killed there, holding the cell
     survivor = _worker(args, tmp_path, env, tmp_path / "a.log")
     victim = _worker(args, tmp_path, {**env, SIGNAL_FILE_ENV: str(signals), HOLD_ENV: "1"}, tmp_path / "b.log")
