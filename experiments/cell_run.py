@@ -74,7 +74,12 @@ def fetch_checkpoint(client: Client, run_id: str, dst: Path) -> Path | None:
 
 
 def cell_params(cell: Cell) -> dict[str, str]:
-    return {**flatten(cell.resolved), "profile": cell.profile, "study_name": cell.study_name,
+    """The run's params: the hashed config, the product dtype (also at its default) and the device it trains on
+    (resolved: a bad or missing device fails the cell here, with one line)."""
+    from stm.device import resolve_device
+
+    return {**flatten(cell.resolved), "train.matmul_dtype": cell.train.matmul_dtype,
+            "device": str(resolve_device(cell.device)), "profile": cell.profile, "study_name": cell.study_name,
             **provenance_params()}
 
 
@@ -120,7 +125,7 @@ def run_cell(cell: Cell | dict[str, Any], uri: str, run_id: str, progress: bool 
             log.info("cell %s: training %d iterations (from %d)", cell.key, cell.train.iters, run.resumed_from)
             result = train(cell.model, cell.train, task, demos, checkpoint_path=run.ckpt_path, resume=True,
                            on_metrics=run.buffer.add, on_checkpoint=run.on_checkpoint,
-                           on_validation=run.on_validation, progress=progress)
+                           on_validation=run.on_validation, progress=progress, device=cell.device)
             metrics = run.evaluate(result)
         return run.finished(metrics, start)
     except KeyboardInterrupt:  # Ctrl-C: KILLED, resumable from its checkpoint (taken where it stood)
@@ -220,6 +225,7 @@ class CellRun:
 
         from experiments.evaluation import evaluate_model, rollout_arrays, rollout_figure
         from experiments.model_logging import log_stm  # the trained STM as the run's MLflow model "model"
+        from stm.device import resolve_device
 
         cell, client, run_id, work = self.cell, self.client, self.run_id, self.work
         self.buffer.flush()
@@ -227,7 +233,8 @@ class CellRun:
         log.info("cell %s: trained in %.0fs; evaluating on %s", cell.key, result.seconds, ", ".join(cell.eval_tasks))
         log_metrics(client, run_id, {"time/train_seconds": result.seconds, "train/iterations": result.iterations})
         train_cfg = cell.train
-        metrics, details = evaluate_model(result.model, list(cell.eval_tasks), cell.eval_dict(), seed=cell.seed,
+        metrics, details = evaluate_model(result.model.to(resolve_device(cell.device)), list(cell.eval_tasks),
+                                          cell.eval_dict(), seed=cell.seed,
                                           phi_mode=train_cfg.phi_mode, data=cell.data,
                                           train_feedback=train_cfg.feedback, temperature=train_cfg.temperature)
         log_metrics(client, run_id, metrics)

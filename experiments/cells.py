@@ -25,6 +25,7 @@ class Cell:
     dataset_seed: int = 0  # the demonstrations are the same for every training seed
     data: dict[str, Any] = field(default_factory=dict)  # training task's constructor options (e.g. n_demos)
     keep_checkpoints: int = 0  # StudyConfig.keep_checkpoints (not hashed: it shapes no result)
+    device: str = "cpu"  # StudyConfig.device: where it trains (not hashed; the run's param "device")
 
     @property
     def key(self) -> str:
@@ -76,5 +77,6 @@ def build_cells(cfg: StudyConfig) -> list[Cell]:
                 model, train = resolve_stm_configs(cfg, task, variant, seed)
                 cells.append(Cell(task=task, variant=variant, seed=seed, model=model, train=train, eval=cfg.eval,
                                   eval_tasks=eval_tasks, profile=cfg.profile, study_name=study_name,
-                                  data=cfg.data_options(task), keep_checkpoints=cfg.keep_checkpoints))
+                                  data=cfg.data_options(task), keep_checkpoints=cfg.keep_checkpoints,
+                                  device=cfg.device))
     return cells

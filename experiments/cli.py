@@ -11,7 +11,13 @@ import argparse
 import logging
 import sys
 
-from experiments.runtime.processes import add_threads_option, default_workers, set_training_threads
+from experiments.runtime.processes import (
+    add_device_option,
+    add_threads_option,
+    checked_device,
+    default_workers,
+    set_training_threads,
+)
 from experiments.study_config import ConfigError, StudyConfig, available_profiles, load_profile
 
 log = logging.getLogger("experiments")
@@ -37,6 +43,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help="worker processes (default: $ACRMDN_WORKERS, else one per core)")
     add_threads_option(p)
+    add_device_option(p, "train and roll out")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
@@ -94,18 +101,22 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
     are reported before anything is written."""
     if args.workers is None:
         default_workers()  # a bad $ACRMDN_WORKERS: one line now, not once the study has started
+    device = checked_device(args.device)
     if args.command == "ablation":
-        return load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
-                            seeds=args.seeds, workers=args.workers, pack=args.pack,
-                            study_name=args.study_name)
+        cfg = load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
+                           seeds=args.seeds, workers=args.workers, pack=args.pack,
+                           study_name=args.study_name, device=device)
+        checked_device(cfg.device)  # a profile's or --set device
+        return cfg
     space = args.space.split(",") if args.space else None
-    cfg = load_profile(args.profile, args.overrides, workers=args.workers, **{
+    cfg = load_profile(args.profile, args.overrides, workers=args.workers, device=device, **{
         "sweep.task": args.task, "sweep.variant": args.variant, "sweep.space": space,
         "sweep.trials": args.trials, "sweep.sampler": args.sampler, "sweep.storage": args.storage,
         "sweep.study_name": args.study_name})
     from experiments.sweeps.runner import check_sweep
 
     check_sweep(cfg)
+    checked_device(cfg.device)
     return cfg
 
 

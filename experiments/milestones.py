@@ -29,7 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from experiments.cell_run import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, setup_process
-from experiments.runtime.processes import add_threads_option
+from experiments.config_errors import ConfigError
+from experiments.runtime.processes import add_device_option, add_threads_option, checked_device
 from experiments.runtime.tracking import (
     ABLATION,
     MILESTONE_ITERATION,
@@ -105,11 +106,12 @@ def _source_config(client: Client, run_id: str, work: Path) -> dict[str, Any]:
 
 
 def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None, level: int,
-                       threads: int | None, feedback: str | None = None) -> tuple[str, str]:
-    """Worker entry point: evaluate one kept checkpoint into its run; (status, error)."""
+                       threads: int | None, feedback: str | None = None, device: str = "cpu") -> tuple[str, str]:
+    """Worker entry point: evaluate one kept checkpoint into its run, its rollouts on `device`; (status, error)."""
     import numpy as np
 
     from experiments.evaluation import evaluate_model, rollout_arrays
+    from stm.device import resolve_device
     from stm.training.checkpoint import load_model
 
     setup_process(level, threads)
@@ -125,7 +127,8 @@ def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None
                                              str(work / "ckpt"))
             train = cfg["train"]
             start = time.perf_counter()
-            metrics, details = evaluate_model(load_model(Path(path)), list(cfg["eval_tasks"]), eval_cfg,
+            set_tags(client, run_id, {"device": str(resolve_device(device))})
+            metrics, details = evaluate_model(load_model(Path(path), device), list(cfg["eval_tasks"]), eval_cfg,
                                               seed=int(cfg["seed"]), phi_mode=train.get("phi_mode"), timings=False,
                                               data=cfg.get("data"), train_feedback=train.get("feedback"),
                                               temperature=float(train.get("temperature", 1.0)))
@@ -199,7 +202,7 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
 
 def run_milestones(study: str, tasks: list[str] | None = None, variants: list[str] | None = None,
                    rollouts: int | None = None, workers: int = 1, uri: str | None = None,
-                   feedback: str | None = None) -> dict[str, int]:
+                   feedback: str | None = None, device: str = "cpu") -> dict[str, int]:
     """Evaluate every kept checkpoint of the study not evaluated yet (feeding back `feedback` instead of the
     cells' own: module docstring); counts by outcome."""
     from experiments.runtime.processes import training_threads, worker_pool
@@ -220,7 +223,7 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
             counts["FINISHED"] += 1
     with worker_pool(max(1, workers)) as pool:
         threads = training_threads()
-        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, threads, feedback))
+        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, threads, feedback, device))
                    for m, r in evaluate]
         for m, fut in futures:
             status, error = fut.result()
@@ -239,6 +242,7 @@ def add_parser(sub) -> None:
     p.add_argument("--rollouts", type=int, default=None, help="episodes per seed and task (default: the cell's)")
     p.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
     add_threads_option(p)
+    add_device_option(p, "roll out")
     p.add_argument("--feedback", choices=FEEDBACKS, default=None,
                    help="evaluate feeding back this instead of the cells' eval.feedback, final models included, "
                         "as the study <study>-milestones-feedback-<MODE>")
@@ -251,9 +255,10 @@ def main(args) -> int:
         print(f"error: --rollouts must be >= 1, got {args.rollouts}", file=sys.stderr)
         return 2
     try:
+        device = checked_device(args.device) or "cpu"
         counts = run_milestones(args.study, args.tasks, args.variants, args.rollouts, args.workers,
-                                feedback=args.feedback)
-    except MilestoneError as exc:
+                                feedback=args.feedback, device=device)
+    except (MilestoneError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"{milestones_study_name(args.study, args.feedback)!r}: {counts['FINISHED']} evaluated, "

@@ -128,7 +128,8 @@ def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], l
                     checkpoint_paths=[runs[k].ckpt_path for k in live],
                     on_metrics=lambda j, it, m: runs[live[j]].buffer.add(it, m),
                     on_checkpoint=lambda j, path, it: checkpointed(live, j, path, it),
-                    on_validation=lambda j, it, v: runs[live[j]].on_validation(it, v)) if live else []
+                    on_validation=lambda j, it, v: runs[live[j]].on_validation(it, v),
+                    device=cells[0].device) if live else []
             except Exception as exc:  # the pack as a whole (its task, data or training): every seed fails
                 for k in live:
                     results[k] = runs[k].failed(exc, start)

@@ -74,6 +74,9 @@ class StudyConfig:
     # every N iterations a copy of each cell's checkpoint stays in its run (artifact checkpoint_at/<iteration>/),
     # so that a long run's intermediate models can be evaluated later (success vs iterations); 0: none. Not hashed.
     keep_checkpoints: NonNegativeInt = 0
+    # where the cells train: auto | cpu | cuda | cuda:N (stm.device); --device; not hashed (the same study on
+    # any machine), recorded as each run's param "device"
+    device: str = "cpu"
     study_name: str = ""  # the parent run's name; load_profile derives it (see derived_study_name)
     model: dict[str, Any] = field(default_factory=dict)  # the profile's (and --set) ModelConfig values
     train: dict[str, Any] = field(default_factory=dict)  # ... TrainConfig values
@@ -97,6 +100,13 @@ class StudyConfig:
             choice(t, allowed)
         return tasks
 
+    @field_validator("device")
+    @classmethod
+    def _device(cls, device: str) -> str:
+        from stm.device import check_device_name
+
+        return check_device_name(device)
+
     @field_validator("variants")
     @classmethod
     def _variants(cls, variants: tuple[str, ...]) -> tuple[str, ...]:
@@ -119,7 +129,7 @@ class StudyConfig:
 
     def study_hash(self) -> str:
         """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor
-        workers/pack/keep_checkpoints)."""
+        workers/pack/keep_checkpoints/device)."""
         d = self.to_dict()
         return config_hash({k: d[k] for k in ("model", "train", "per_task", "eval")})
 

@@ -24,6 +24,7 @@ Head = Literal["mdn", "deterministic"]
 Feedback = Literal["sample", "component_mean", "mixture_mean"]  # what an MDN's output feeds back
 PhiMode = Literal["grounded", "free"]
 StepKernel = Literal["python", "cpp"]  # the self-fed steps: Python ATen calls, or one C++ op per segment
+MatmulDtype = Literal["float32", "bfloat16"]  # dtype of the training step's matrix products (stm.lstm_step)
 HEADS: tuple[str, ...] = get_args(Head)
 FEEDBACKS: tuple[str, ...] = get_args(Feedback)
 PHI_MODES: tuple[str, ...] = get_args(PhiMode)
@@ -73,7 +74,8 @@ class ModelConfig(_Config):
 class TrainConfig(_Config):
     """Optimisation and the auto-conditioning schedule."""
 
-    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0, "step_kernel": "python"}
+    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0, "step_kernel": "python",
+                                                "matmul_dtype": "float32"}
 
     iters: NonNegativeInt = 2000  # optimizer steps
     batch_size: PositiveInt = 32  # demonstrations per step (sampled without replacement when possible)
@@ -94,6 +96,9 @@ class TrainConfig(_Config):
     # "cpp": the self-fed steps as one C++ op per segment (stm.self_fed; same maths, falls back to "python" where
     # it does not apply or cannot be built)
     step_kernel: StepKernel = "python"
+    # the matrix products of the LSTM stack and the head (forward and backward) in this dtype; state, elementwise
+    # maths, kinematics, loss, master weights and Adam stay float32 (stm.lstm_step.product_dtype)
+    matmul_dtype: MatmulDtype = "float32"
     checkpoint_every: NonNegativeInt = 500  # iterations between checkpoints (0: only at the end)
     log_every: NonNegativeInt = 10  # iterations between on_metrics calls
     val_every: NonNegativeInt = 0  # iterations between validations (0: never)

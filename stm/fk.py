@@ -25,6 +25,7 @@ no autograd graph.
 
 from __future__ import annotations
 
+import copy
 import itertools
 
 import torch
@@ -180,6 +181,24 @@ class TipKinematics:
 
     def clamp(self, q: torch.Tensor) -> torch.Tensor:
         return torch.clamp(q, self.lower, self.upper)
+
+    def to(self, device: torch.device | str) -> TipKinematics:
+        """This kinematics with its constants on `device` (itself where they are there already); the
+        pytorch-kinematics chain it was read from stays where it is."""
+        device = torch.device(device)
+        if self.coef.device == device:
+            return self
+        moved = self.__dict__.setdefault("_moved", {})  # one copy per device (rollouts ask once per call)
+        if device in moved:
+            return moved[device]
+        out = moved[device] = copy.copy(self)
+        for name in ("coef", "row_sums", "signs", "phases", "lower", "upper"):
+            setattr(out, name, getattr(self, name).to(device))
+        for name in ("tip_plan", "grad_plan"):
+            plan = copy.copy(getattr(self, name))
+            plan.index = plan.index.to(device)
+            setattr(out, name, plan)
+        return out
 
 
 _DEFAULT: dict[torch.dtype, TipKinematics] = {}

@@ -15,6 +15,12 @@ plain reference unroll in tests/test_stm_speed_equivalence.py.
 
 The step functions are rank-agnostic: with a leading model axis (x (K, B, D), w (K, I, 4H))
 they step K independent models at once with batched matmuls (stm.packed_lstm_step).
+
+Low-precision products (TrainConfig.matmul_dtype "bfloat16"): every matrix product of a step,
+forward, backward and the deferred weight gradient, takes its operands in that dtype (the
+weights cast once per unroll) and hands back float32; the state, the gate maths and all
+gradients outside the products stay float32. Why explicit casts and not torch.autocast: the
+hand-written backward would get products of autocast's dtype where it adds float32 tensors.
 """
 
 from __future__ import annotations
@@ -23,12 +29,29 @@ import torch
 from torch import nn
 
 
-class DeferredGrads:
-    """Per unroll: the ([x, h], d gates) rows each layer's steps left for the weight gradient."""
+def product_dtype(name: str) -> torch.dtype | None:
+    """TrainConfig.matmul_dtype -> the dtype of the low-precision products, None for float32 (today's path)."""
+    if name == "float32":
+        return None
+    if name == "bfloat16":
+        return torch.bfloat16
+    raise ValueError(f"unknown matmul_dtype {name!r}; known: float32, bfloat16")
 
-    def __init__(self, layers: int):
+
+def mm(a: torch.Tensor, b: torch.Tensor, dtype: torch.dtype | None) -> torch.Tensor:
+    """a @ b; with dtype, the product of the operands cast to it, as float32."""
+    return a @ b if dtype is None else torch.matmul(a.to(dtype), b.to(dtype)).float()
+
+
+class DeferredGrads:
+    """Per unroll: the ([x, h], d gates) rows each layer's steps left for the weight gradient; with a
+    low-precision product dtype, also the weights and biases cast to it once (`low`, as wb)."""
+
+    def __init__(self, layers: int, dtype: torch.dtype | None = None):
         self.xh: list[list[torch.Tensor]] = [[] for _ in range(layers)]
         self.dgates: list[list[torch.Tensor]] = [[] for _ in range(layers)]
+        self.dtype = dtype
+        self.low: list[torch.Tensor] = []
 
 
 class DeferredWeights(torch.autograd.Function):
@@ -49,11 +72,18 @@ class DeferredWeights(torch.autograd.Function):
             gw, gb = grads[2 * k], grads[2 * k + 1]
             if xh:  # rows (N, .) of one model, or (K, N, .) of a pack of K (stm.packed_lstm_step)
                 xh, dg = torch.cat(xh, -2), torch.cat(dg, -2)
-                dw, db = xh.transpose(-2, -1) @ dg, dg.sum(-2, keepdim=dg.dim() == 3)
+                dw, db = mm(xh.transpose(-2, -1), dg, store.dtype), dg.sum(-2, keepdim=dg.dim() == 3)
                 gw = dw if gw is None else gw + dw
                 gb = db if gb is None else gb + db
             out += [gw, gb]
         return (None, *out)
+
+
+def cast_once(store: DeferredGrads, wb: list[torch.Tensor]) -> None:
+    """The weights and biases in the store's product dtype, for every step of the unroll (their gradients go
+    through the deferred float32 path, so the casts are detached)."""
+    if store.dtype is not None:
+        store.low = [t.detach().to(store.dtype) for t in wb]
 
 
 def _affine(b: torch.Tensor, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -62,12 +92,14 @@ def _affine(b: torch.Tensor, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tensor], ws: list[torch.Tensor],
-                   bs: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor], list[list[torch.Tensor]]]:
+                   bs: list[torch.Tensor], dtype: torch.dtype | None = None
+                   ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[list[torch.Tensor]]]:
     """The forward of one step, bottom layer first; also, per layer, the local derivatives the
     backward needs, so that it is a few ops per layer:
       d pre-activations = [dc, dc, dh, dc] * [g, c, tanh(c'), 2 i] * s (1 - s)  (`gd`: all but the first)
       dc = dc' + dh * o (1 - tanh(c')^2)                                          (`o_dt`: the last factor)
-    with s the gate sigmoids (the g gate's doubled: g = 2 s_g - 1)."""
+    with s the gate sigmoids (the g gate's doubled: g = 2 s_g - 1). With dtype, ws and bs are in it, [x, h] is
+    cast to it for the product (and saved so for the weight gradient) and the gates come back as float32."""
     H = hs[0].shape[-1]
     h_out: list[torch.Tensor] = []
     c_out: list[torch.Tensor] = []
@@ -75,7 +107,12 @@ def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tenso
     inp = x
     for k in range(len(hs)):
         xh = torch.cat([inp, hs[k]], -1)
-        sig = torch.sigmoid(_affine(bs[k], xh, ws[k]))  # i, f, o and sigmoid(2 g_pre)
+        if dtype is None:
+            pre = _affine(bs[k], xh, ws[k])
+        else:
+            xh = xh.to(dtype)
+            pre = _affine(bs[k], xh, ws[k]).float()
+        sig = torch.sigmoid(pre)  # i, f, o and sigmoid(2 g_pre)
         i, f, o = sig[..., :H], sig[..., H: 2 * H], sig[..., 2 * H: 3 * H]
         g = sig[..., 3 * H:] * 2.0 - 1.0  # tanh(x) = 2 sigmoid(2x) - 1: one sigmoid for all gates
         c_new = torch.addcmul(f * cs[k], i, g)
@@ -90,10 +127,10 @@ def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tenso
 
 
 def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None], ws: list[torch.Tensor],
-                    saved: list[list[torch.Tensor]], need_x: bool
+                    saved: list[list[torch.Tensor]], need_x: bool, dtype: torch.dtype | None = None
                     ) -> tuple[torch.Tensor | None, list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
     """The LSTM backward of one step, top layer first. Returns d x, d h_k, d c_k and, per layer,
-    d gates (for the deferred weight gradient)."""
+    d gates (for the deferred weight gradient). With dtype (ws in it) the products run in it."""
     L = len(saved)
     grad_h: list[torch.Tensor] = []
     grad_c: list[torch.Tensor] = []
@@ -113,12 +150,12 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
         H = f.shape[-1]
         d_in = xh.shape[-1] - H
         if k > 0 or need_x:
-            dxh = dgates @ ws[k].transpose(-2, -1)
+            dxh = mm(dgates, ws[k].transpose(-2, -1), dtype)
             below = dxh[..., :d_in]
             grad_h.append(dxh[..., d_in:])
         else:  # a ground-truth input: only the recurrent part
             below = None
-            grad_h.append(dgates @ ws[k][..., d_in:, :].transpose(-2, -1))
+            grad_h.append(mm(dgates, ws[k][..., d_in:, :].transpose(-2, -1), dtype))
         dgs.append(dgates)
     grad_h.reverse()
     grad_c.reverse()
@@ -137,8 +174,10 @@ class StackStep(torch.autograd.Function):
     def forward(ctx, x, store: DeferredGrads, *args):
         L = len(args) // 4
         hs, cs, wb = list(args[:L]), list(args[L: 2 * L]), args[2 * L:]
+        if store.dtype is not None:  # the products' weights: cast once per unroll (the stepper's)
+            wb = store.low
         ws, bs = list(wb[0::2]), list(wb[1::2])
-        h_out, c_out, saved = _stack_forward(x, hs, cs, ws, bs)
+        h_out, c_out, saved = _stack_forward(x, hs, cs, ws, bs, store.dtype)
         ctx.saved, ctx.store, ctx.w = saved, store, ws
         return (*h_out, *c_out)
 
@@ -146,7 +185,7 @@ class StackStep(torch.autograd.Function):
     def backward(ctx, *grads):
         L = len(ctx.saved)
         dx, grad_h, grad_c, dgs = _stack_backward(list(grads[:L]), list(grads[L:]), ctx.w, ctx.saved,
-                                                  ctx.needs_input_grad[0])
+                                                  ctx.needs_input_grad[0], ctx.store.dtype)
         store = ctx.store
         for k in range(L):
             store.xh[k].append(ctx.saved[k][0])
@@ -154,11 +193,13 @@ class StackStep(torch.autograd.Function):
         return (dx, None, *grad_h, *grad_c) + (None,) * (2 * L)
 
 
-def gate_order(H: int) -> tuple[torch.Tensor, torch.Tensor]:
+def gate_order(H: int, device: torch.device | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """nn.LSTM's gate rows (i, f, g, o) -> (i, f, o, g), and the scale that doubles the g rows: tanh(x) =
-    2 sigmoid(2x) - 1, so one sigmoid covers all four gates (tanh costs several times a sigmoid per element)."""
-    order = torch.cat([torch.arange(0, 2 * H), torch.arange(3 * H, 4 * H), torch.arange(2 * H, 3 * H)])
-    scale = torch.cat([torch.ones(3 * H), torch.full((H,), 2.0)])
+    2 sigmoid(2x) - 1, so one sigmoid covers all four gates (tanh costs several times a sigmoid per element).
+    On the weights' device (made there: no host copy inside a captured CUDA graph)."""
+    order = torch.cat([torch.arange(0, 2 * H, device=device), torch.arange(3 * H, 4 * H, device=device),
+                       torch.arange(2 * H, 3 * H, device=device)])
+    scale = torch.cat([torch.ones(3 * H, device=device), torch.full((H,), 2.0, device=device)])
     return order, scale
 
 
@@ -166,15 +207,16 @@ class StackStepper:
     """Steps an nn.LSTM's stack one time step at a time (create one per unroll, inside the
     autograd graph: it rearranges the weights once)."""
 
-    def __init__(self, lstm: nn.LSTM, in_std: torch.Tensor | None = None):
+    def __init__(self, lstm: nn.LSTM, in_std: torch.Tensor | None = None, dtype: torch.dtype | None = None):
         """With in_std the steps take centred inputs x - mean and compute what the LSTM gives
         for (x - mean) / in_std: the division is folded into the first layer's input weights,
         W ((x - m) / s) = (W / s)(x - m), one op fewer per step. (The mean is not folded:
-        (W / s) x - (W / s) m would cancel catastrophically where s is tiny.)"""
+        (W / s) x - (W / s) m would cancel catastrophically where s is tiny.) With dtype the products run in
+        it (product_dtype)."""
         H, L = lstm.hidden_size, lstm.num_layers
         self.layers = L
-        self.store = DeferredGrads(L)
-        order, scale = gate_order(H)
+        self.store = DeferredGrads(L, dtype)
+        order, scale = gate_order(H, lstm.weight_hh_l0.device)
         wb = []
         for k in range(L):  # W^T of [x, h] -> gates, and the summed bias
             w_ih, b = getattr(lstm, f"weight_ih_l{k}"), getattr(lstm, f"bias_ih_l{k}") + getattr(lstm, f"bias_hh_l{k}")
@@ -183,6 +225,7 @@ class StackStepper:
             w = torch.cat([w_ih, getattr(lstm, f"weight_hh_l{k}")], dim=1)
             wb += [(w[order] * scale[:, None]).t(), b[order] * scale]
         self.wb = DeferredWeights.apply(self.store, *wb)
+        cast_once(self.store, wb)
 
     def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
                  ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:

@@ -67,6 +67,9 @@ def sample_component(logit_alpha: torch.Tensor, *, temperature: float = 1.0,
         raise ValueError(f"temperature must be > 0, got {temperature}")
     probs = torch.softmax(logit_alpha.detach() / temperature, dim=-1)
     flat = probs.reshape(-1, probs.shape[-1])
+    if generator is not None and generator.device != flat.device:  # a CPU stream for a model on a GPU
+        return torch.multinomial(flat.to(generator.device), 1, generator=generator).to(flat.device).reshape(
+            probs.shape[:-1])
     return torch.multinomial(flat, 1, generator=generator).reshape(probs.shape[:-1])
 
 
@@ -94,7 +97,8 @@ def sample(logit_alpha: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor,
     idx = sample_component(logit_alpha, temperature=temperature, generator=generator)
     mu_k = select(mu, idx)
     sigma_k = torch.exp(torch.gather(log_sigma, -1, idx.unsqueeze(-1))) * math.sqrt(temperature)
-    eps = torch.randn(mu_k.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+    device = mu.device if generator is None else generator.device  # the generator's stream, on any device
+    eps = torch.randn(mu_k.shape, generator=generator, dtype=mu.dtype, device=device).to(mu.device)
     return mu_k + sigma_k * eps
 
 

@@ -136,7 +136,7 @@ def initial_state(task, kin, q0: torch.Tensor, psi0: torch.Tensor, grip0: torch.
     """s_0 of an episode (dq_0 = 0; gripper open unless given)."""
     grip = None
     if task.layout.gripper:
-        grip = torch.zeros(q0.shape[:-1], dtype=q0.dtype) if grip0 is None else grip0
+        grip = torch.zeros(q0.shape[:-1], dtype=q0.dtype, device=q0.device) if grip0 is None else grip0
     return task.states(q0, q0, grip, psi0, kin).to(q0.dtype)
 
 

@@ -11,6 +11,8 @@ unrolls a pack and stm.training.loop runs the loop (a single model is a pack of 
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import nn
 
@@ -52,13 +54,13 @@ class PackedSTM(nn.Module):
 
     def model_state(self, k: int) -> dict[str, torch.Tensor]:
         """Model k's state dict in STM's format (weights and normalisation buffers)."""
-        state = {n: p[k].detach().clone() for n, p in zip(self.names, self.stacked, strict=True)}
-        return {**state, "state_mean": self.state_mean.clone(), "state_std": self.state_std.clone()}
+        state = {n: p[k].detach().cpu().clone() for n, p in zip(self.names, self.stacked, strict=True)}
+        return {**state, "state_mean": self.state_mean.cpu().clone(), "state_std": self.state_std.cpu().clone()}
 
     def load_model_state(self, k: int, state: dict[str, torch.Tensor]) -> None:
         """Write an STM state dict into slot k (the buffers must match the pack's)."""
         for key in ("state_mean", "state_std"):
-            if not torch.equal(state[key], getattr(self, key)):
+            if not torch.equal(state[key].to(self.state_mean.device), getattr(self, key)):
                 raise ValueError(f"model {k}'s {key} differs from the pack's (another dataset?)")
         with torch.no_grad():
             for n, p in zip(self.names, self.stacked, strict=True):
@@ -72,6 +74,8 @@ class PackedSTM(nn.Module):
 
     def view(self, idx: torch.Tensor | None = None) -> PackView:
         """The parameters of models idx (all when None) for one unroll; gradients reach the pack."""
+        if idx is not None:
+            idx = idx.to(self.state_mean.device)
         ps = list(self.stacked) if idx is None else [p.index_select(0, idx) for p in self.stacked]
         return PackView(self, dict(zip(self.names, ps, strict=True)))
 
@@ -86,6 +90,15 @@ class PackView:
                      for k in range(pack.config.num_layers)]
         self.head_w, self.head_b = p["head.weight"], p["head.bias"]  # (K, out, H), (K, out)
         self.K = self.head_w.shape[0]
+        self.matmul_dtype: torch.dtype | None = None  # the head's products in it (None: float32)
+
+    def with_products(self, dtype: torch.dtype | None) -> PackView:
+        """This view with the head's products in `dtype` (stm.lstm_step.product_dtype; None: float32)."""
+        if dtype is self.matmul_dtype:
+            return self
+        view = copy.copy(self)
+        view.matmul_dtype = dtype
+        return view
 
     @classmethod
     def of_model(cls, model: STM) -> PackView:
@@ -101,7 +114,12 @@ class PackView:
     def head(self, h: torch.Tensor) -> torch.Tensor:
         """Top hidden states (K, ..., H) -> head outputs (K, ..., out)."""
         flat = h.reshape(self.K, -1, h.shape[-1])
-        out = torch.baddbmm(self.head_b.unsqueeze(1), flat, self.head_w.transpose(1, 2))
+        dt = self.matmul_dtype
+        if dt is None:
+            out = torch.baddbmm(self.head_b.unsqueeze(1), flat, self.head_w.transpose(1, 2))
+        else:
+            w_t = self.head_w.transpose(1, 2).to(dt)
+            out = torch.baddbmm(self.head_b.unsqueeze(1).to(dt), flat.to(dt), w_t).float()
         return out.view(*h.shape[:-1], out.shape[-1])
 
     def mixture(self, raw: torch.Tensor):
@@ -138,13 +156,20 @@ class PackView:
         if wb is None:
             return None
         w_fb, b_fb = wb
+        dt = self.matmul_dtype
+        if dt is not None:  # cast once per unroll
+            w_fb, b_fb = w_fb.to(dt), b_fb.to(dt)
+
+        def product(h: torch.Tensor) -> torch.Tensor:
+            return torch.baddbmm(b_fb, h, w_fb) if dt is None else torch.baddbmm(b_fb, h.to(dt), w_fb).float()
+
         if not self.is_mdn:
-            return lambda h: torch.baddbmm(b_fb, h, w_fb)
+            return product
         m = self.config.mixtures
         point = mdn.component_mean if mode == "component_mean" else mdn.mixture_mean
 
         def predict(h: torch.Tensor) -> torch.Tensor:
-            out = torch.baddbmm(b_fb, h, w_fb)
+            out = product(h)
             return point(out[..., :m], out[..., m:].unflatten(-1, (m, dims)))
 
         return predict
@@ -158,7 +183,7 @@ def clip_per_model(params: list[torch.Tensor], max_norms: torch.Tensor) -> torch
     K = grads[0].shape[0]
     norms = torch.stack([torch.linalg.vector_norm(g.reshape(K, -1), dim=1) for g in grads], dim=1)
     total = torch.linalg.vector_norm(norms, dim=1)
-    coef = (max_norms.to(total.dtype) / (total + 1e-6)).clamp(max=1.0)
+    coef = (max_norms.to(total.device, total.dtype) / (total + 1e-6)).clamp(max=1.0)
     for g in grads:
         g.mul_(coef.view(K, *[1] * (g.dim() - 1)))
     return total
@@ -182,10 +207,12 @@ class PackedAdam:
         b1, b2 = self.betas
         K = self.steps.shape[0]
         full = len(active) == K
-        self.steps[active] += 1
+        self.steps[active] += 1  # step counts and learning rates: float64 on the CPU, as torch.optim.Adam's
         st = self.steps[active]
-        step_size = (self.lr[active] / (1 - b1 ** st)).float()
-        bc2_sqrt = ((1 - b2 ** st) ** 0.5).float()
+        device = self.params[0].device
+        step_size = (self.lr[active] / (1 - b1 ** st)).float().to(device)
+        bc2_sqrt = ((1 - b2 ** st) ** 0.5).float().to(device)
+        active = active.to(device)
         for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
             shape = (len(active), *[1] * (p.dim() - 1))
             g = p.grad if full else p.grad.index_select(0, active)
@@ -203,7 +230,8 @@ class PackedAdam:
     def model_state(self, k: int, template: dict) -> dict:
         """Model k's optimiser state in torch.optim.Adam's state_dict format (`template`: the
         state_dict of an Adam over the extracted model, for its param_groups)."""
-        state = {i: {"step": torch.tensor(float(self.steps[k])), "exp_avg": m[k].clone(), "exp_avg_sq": v[k].clone()}
+        state = {i: {"step": torch.tensor(float(self.steps[k])), "exp_avg": m[k].cpu().clone(),
+                     "exp_avg_sq": v[k].cpu().clone()}
                  for i, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True))}
         groups = [{**g, "lr": float(self.lr[k])} for g in template["param_groups"]]
         return {"state": state if self.steps[k] > 0 else {}, "param_groups": groups}

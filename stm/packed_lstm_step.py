@@ -4,14 +4,16 @@ Per layer the K models' weights are stacked on a leading model axis, (K, I, 4H),
 step is one batched matmul per layer (torch.baddbmm) for all K models: the same
 forward with local derivatives, hand-written backward and deferred weight gradient as
 stm.lstm_step (whose step functions take either rank), so a pack of K costs about what one
-model costs in per-op overhead, and K times its arithmetic.
+model costs in per-op overhead, and K times its arithmetic. With a low-precision product dtype
+(stm.lstm_step.product_dtype) the stepper's and the layer sequence's products run in it; the fused
+sequence (nn.LSTM's kernel) stays float32.
 """
 
 from __future__ import annotations
 
 import torch
 
-from stm.lstm_step import DeferredGrads, DeferredWeights, StackStep, gate_order
+from stm.lstm_step import DeferredGrads, DeferredWeights, StackStep, cast_once, gate_order, mm
 
 
 class PackedStackStepper:
@@ -19,13 +21,15 @@ class PackedStackStepper:
     autograd graph). `lstm` is a list per layer of (w_ih (K, 4H, I), w_hh (K, 4H, H),
     b_ih (K, 4H), b_hh (K, 4H)), nn.LSTM's layout with a leading model axis. With in_std
     ((D,) or (K, D)) the steps take centred inputs and fold the division into the first
-    layer's input weights, as stm.lstm_step.StackStepper does."""
+    layer's input weights, as stm.lstm_step.StackStepper does. With dtype the products run in it."""
 
-    def __init__(self, lstm: list[tuple[torch.Tensor, ...]], in_std: torch.Tensor | None = None):
+    def __init__(self, lstm: list[tuple[torch.Tensor, ...]], in_std: torch.Tensor | None = None,
+                 dtype: torch.dtype | None = None):
         H = lstm[0][1].shape[-1]
         self.layers = len(lstm)
-        self.store = DeferredGrads(self.layers)
-        order, scale = gate_order(H)
+        self.dtype = dtype
+        self.store = DeferredGrads(self.layers, dtype)
+        order, scale = gate_order(H, lstm[0][1].device)
         wb = []
         for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(lstm):
             if k == 0 and in_std is not None:
@@ -33,6 +37,7 @@ class PackedStackStepper:
             w = torch.cat([w_ih, w_hh], dim=2)[:, order] * scale[:, None]  # (K, 4H, I + H)
             wb += [w.transpose(1, 2), ((b_ih + b_hh)[:, order] * scale).unsqueeze(1)]
         self.wb = DeferredWeights.apply(self.store, *wb)
+        cast_once(self.store, wb)
 
     def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
                  ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
@@ -53,18 +58,24 @@ class _LayerSeq(torch.autograd.Function):
     steps, and only the recurrent part is stepped. One autograd node per layer and chunk; the
     backward steps back through time, then computes the input and weight gradients in one
     batched matmul each. Weights as the stepper's: w_t (K, I + H, 4H) (gates i, f, o, 2g),
-    b (K, 1, 4H)."""
+    b (K, 1, 4H); with dtype, every product in it (the input projection kept in it)."""
 
     @staticmethod
-    def forward(ctx, x, h0, c0, w_t, b):
+    def forward(ctx, x, h0, c0, w_t, b, dtype=None):
         K, B, n, I = x.shape
         H = h0.shape[-1]
         w_x, w_h = w_t[:, :I], w_t[:, I:].contiguous()
-        proj = torch.baddbmm(b, x.reshape(K, B * n, I), w_x).view(K, B, n, 4 * H)
+        if dtype is not None:
+            x_, w_x, w_h, b = x.to(dtype), w_x.to(dtype), w_h.to(dtype), b.to(dtype)
+        proj = torch.baddbmm(b, (x if dtype is None else x_).reshape(K, B * n, I), w_x).view(K, B, n, 4 * H)
         h, c = h0, c0
         hs, gds, odts, fs = [], [], [], []
         for t in range(n):
-            sig = torch.sigmoid(torch.baddbmm(proj[:, :, t], h, w_h))
+            if dtype is None:
+                pre = torch.baddbmm(proj[:, :, t], h, w_h)
+            else:
+                pre = torch.baddbmm(proj[:, :, t], h.to(dtype), w_h).float()
+            sig = torch.sigmoid(pre)
             i, f, o = sig[..., :H], sig[..., H: 2 * H], sig[..., 2 * H: 3 * H]
             g = sig[..., 3 * H:] * 2.0 - 1.0
             c_new = torch.addcmul(f * c, i, g)
@@ -78,6 +89,7 @@ class _LayerSeq(torch.autograd.Function):
         out = torch.stack(hs, 2)
         ctx.save_for_backward(x, h0, w_t, out)
         ctx.local = (gds, odts, fs)
+        ctx.dtype = dtype
         return out, h, c
 
     @staticmethod
@@ -86,7 +98,10 @@ class _LayerSeq(torch.autograd.Function):
         gds, odts, fs = ctx.local
         K, B, n, I = x.shape
         H = h0.shape[-1]
+        dt = ctx.dtype
         w_hT = w_t[:, I:].transpose(1, 2).contiguous()
+        if dt is not None:
+            w_hT = w_hT.to(dt)
         dh_rec = g_hn if g_hn is not None else torch.zeros_like(h0)
         dc = g_cn if g_cn is not None else torch.zeros_like(h0)
         dgs = [None] * n
@@ -96,14 +111,15 @@ class _LayerSeq(torch.autograd.Function):
             dgates = torch.cat([dc, dc, dh, dc], -1).mul_(gds[t])
             dgs[t] = dgates
             dc = dc * fs[t]
-            dh_rec = torch.bmm(dgates, w_hT)
+            dh_rec = torch.bmm(dgates, w_hT) if dt is None else torch.bmm(dgates.to(dt), w_hT).float()
         dg = torch.stack(dgs, 2).view(K, B * n, 4 * H)
         h_prev = torch.cat([h0.unsqueeze(2), out[:, :, :-1]], 2).reshape(K, B * n, H)
         xh = torch.cat([x.reshape(K, B * n, I), h_prev], -1)
-        dw = torch.bmm(xh.transpose(1, 2), dg)
+        bmm = torch.bmm if dt is None else lambda a, b: mm(a, b, dt)
+        dw = bmm(xh.transpose(1, 2), dg)
         db = dg.sum(1, keepdim=True)
-        dx = torch.bmm(dg, w_t[:, :I].transpose(1, 2)).view(K, B, n, I) if ctx.needs_input_grad[0] else None
-        return dx, dh_rec, dc, dw, db
+        dx = bmm(dg, w_t[:, :I].transpose(1, 2)).view(K, B, n, I) if ctx.needs_input_grad[0] else None
+        return dx, dh_rec, dc, dw, db, None
 
 
 def layer_sequence(stepper: PackedStackStepper, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
@@ -112,7 +128,7 @@ def layer_sequence(stepper: PackedStackStepper, x: torch.Tensor, h: list[torch.T
     by layer: top hidden states (K, B, n, H) and the per-layer (h, c) after the last step."""
     h_out, c_out = [], []
     for k in range(stepper.layers):
-        x, hn, cn = _LayerSeq.apply(x, h[k], c[k], stepper.wb[2 * k], stepper.wb[2 * k + 1])
+        x, hn, cn = _LayerSeq.apply(x, h[k], c[k], stepper.wb[2 * k], stepper.wb[2 * k + 1], stepper.dtype)
         h_out.append(hn)
         c_out.append(cn)
     return x, h_out, c_out

@@ -62,7 +62,8 @@ def generate_packed(models: PackedSTM | list[STM], task: Task, episodes: list[Ep
     if pack.layout.dim != task.layout.dim:
         raise ValueError(f"model state size {pack.layout.dim} does not match task {task.name!r} "
                          f"state size {task.layout.dim}")
-    K, kin = pack.K, default_tip_kinematics(torch.float32)
+    device = pack.state_mean.device  # the pack's device; samples from CPU generators (stm.device)
+    K, kin = pack.K, default_tip_kinematics(torch.float32).to(device)
     view = pack.view()
     gens = [torch.Generator().manual_seed(seed) for _ in range(K)]
     predict = _predictor(view, feedback, temperature, gens)
@@ -70,19 +71,21 @@ def generate_packed(models: PackedSTM | list[STM], task: Task, episodes: list[Ep
     horizons = np.array([ep.horizon for ep in episodes], dtype=np.int64)
     H = int(horizons.max())
     start = time.perf_counter()
-    psi = padded_psi(episodes, H)
+    psi = padded_psi(episodes, H).to(device)
     B = len(episodes)
-    q0 = torch.as_tensor(np.stack([ep.q0 for ep in episodes]), dtype=torch.float32)
+    q0 = torch.as_tensor(np.stack([ep.q0 for ep in episodes]), dtype=torch.float32).to(device)
     s = initial_state(task, kin, q0, psi[:, 0]).expand(K, B, -1)
     q = q0.expand(K, B, 7)
-    qs, grips = torch.empty(K, B, H + 1, 7), torch.zeros(K, B, H + 1)
+    qs, grips = torch.empty(K, B, H + 1, 7, device=device), torch.zeros(K, B, H + 1, device=device)
     qs[:, :, 0] = q
-    zeros = torch.zeros(K, B, pack.config.hidden_size)
+    zeros = torch.zeros(K, B, pack.config.hidden_size, device=device)
     h, c = [zeros] * pack.config.num_layers, [zeros] * pack.config.num_layers
     grip_idx = task.layout.grip.start if task.layout.gripper else None
     restarts = restart_mask(episodes, H)
+    starting = restarts.any(0).tolist()  # per step (no device sync per step)
+    restarts = restarts.to(device)
     for t in range(H):
-        if t > 0 and restarts[:, t].any():
+        if t > 0 and starting[t]:
             rows = restarts[:, t]
             s = s.clone()
             s[:, rows] = initial_state(task, kin, q[:, rows], psi[rows, t].expand(K, -1, -1))
@@ -97,7 +100,7 @@ def generate_packed(models: PackedSTM | list[STM], task: Task, episodes: list[Ep
     seconds = time.perf_counter() - start
     out = []
     for k in range(K):
-        q_np, grip_np = qs[k].numpy().astype(np.float64), grips[k].numpy().astype(np.float64)
+        q_np, grip_np = qs[k].cpu().numpy().astype(np.float64), grips[k].cpu().numpy().astype(np.float64)
         for i, hz in enumerate(horizons):  # pad past each horizon with the last valid row
             q_np[i, hz + 1:] = q_np[i, hz]
             grip_np[i, hz + 1:] = grip_np[i, hz]

@@ -88,7 +88,7 @@ def _feedback_point(model: STM, raw: torch.Tensor, feedback: str, chosen: torch.
                     fresh: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(normalised next state (B, D), component index (B,) fed back, -1 where none or a blend).
     segment_track: prev (B, D) is the previous step's point, fresh (B,) where a segment starts."""
-    none = torch.full(raw.shape[:1], -1, dtype=torch.long)
+    none = torch.full(raw.shape[:1], -1, dtype=torch.long, device=raw.device)
     if not model.is_mdn or feedback in ("mixture_mean", "sample"):
         return model.predict(raw, feedback, temperature=temperature, generator=gen), none
     if feedback == "component_mean":  # model.predict's path, unchanged; the index only for the record
@@ -107,7 +107,8 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     """Unroll the model from each episode's q0 for its horizon.
 
     feedback: what the MDN head feeds back (FEEDBACKS, see the module docstring), drawn with
-    `temperature` where it samples; phi_mode: None = as the model was trained (model.phi_mode)."""
+    `temperature` where it samples; phi_mode: None = as the model was trained (model.phi_mode). Runs on the
+    model's device (stm.device), drawing from a CPU generator; the rollouts come back as NumPy arrays."""
     phi_mode = phi_mode or model.phi_mode
     if not episodes:
         raise ValueError("generate needs at least one episode")
@@ -120,27 +121,30 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
                          f"state size {task.layout.dim}")
     was_training = model.training
     model.eval()
-    kin = default_tip_kinematics(torch.float32)
+    device = model.state_mean.device
+    kin = default_tip_kinematics(torch.float32).to(device)
     gen = torch.Generator().manual_seed(seed)
     horizons = np.array([ep.horizon for ep in episodes], dtype=np.int64)
     H = int(horizons.max())
     start = time.perf_counter()
-    psi = padded_psi(episodes, H)
-    q = torch.as_tensor(np.stack([ep.q0 for ep in episodes]), dtype=torch.float32)
+    psi = padded_psi(episodes, H).to(device)
+    q = torch.as_tensor(np.stack([ep.q0 for ep in episodes]), dtype=torch.float32).to(device)
     s = initial_state(task, kin, q, psi[:, 0])
     B = len(episodes)
-    qs, grips = torch.empty(B, H + 1, 7), torch.zeros(B, H + 1)
-    comps = torch.full((B, H), -1, dtype=torch.long)
+    qs, grips = torch.empty(B, H + 1, 7, device=device), torch.zeros(B, H + 1, device=device)
+    comps = torch.full((B, H), -1, dtype=torch.long, device=device)
     qs[:, 0] = q
     hc = None
     grip_idx = task.layout.grip.start if task.layout.gripper else None
     restarts = restart_mask(episodes, H)
     restarts[:, 0] = True  # every episode starts a segment
+    starting = restarts.any(0).tolist()  # per step: does an episode start a segment (no device sync per step)
+    restarts = restarts.to(device)
     commit = feedback in ("segment_component", "segment_track") and model.is_mdn
-    chosen = torch.zeros(B, dtype=torch.long)
+    chosen = torch.zeros(B, dtype=torch.long, device=device)
     z = None  # the previous step's fed-back point (normalised)
     for t in range(H):
-        if t > 0 and restarts[:, t].any():
+        if t > 0 and starting[t]:
             rows = restarts[:, t]
             s = s.clone()
             s[rows] = initial_state(task, kin, q[rows], psi[rows, t])
@@ -148,7 +152,7 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
             for x in hc:
                 x[:, rows] = 0.0
         raw, hc = model(model.normalize(s).unsqueeze(1), hc)
-        if commit and restarts[:, t].any():  # draw the segment's component from its first step's weights
+        if commit and starting[t]:  # draw the segment's component from its first step's weights
             rows = restarts[:, t]
             logit_alpha = model.mixture(raw[rows, 0])[0]
             chosen[rows] = mdn.sample_component(logit_alpha, temperature=temperature, generator=gen)
@@ -161,11 +165,11 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
             grips[:, t + 1] = s[:, grip_idx]
     seconds = time.perf_counter() - start
     model.train(was_training)
-    q_np, grip_np = qs.numpy().astype(np.float64), grips.numpy().astype(np.float64)
+    q_np, grip_np = qs.cpu().numpy().astype(np.float64), grips.cpu().numpy().astype(np.float64)
     for i, h in enumerate(horizons):  # pad past each horizon with the last valid row
         q_np[i, h + 1:] = q_np[i, h]
         grip_np[i, h + 1:] = grip_np[i, h]
-    return Rollouts(q=q_np, grip=grip_np, seconds=seconds, horizons=horizons, components=comps.numpy())
+    return Rollouts(q=q_np, grip=grip_np, seconds=seconds, horizons=horizons, components=comps.cpu().numpy())
 
 
 def evaluate(task: Task, rollouts: Rollouts, episodes: list[Episode], progress: bool = False) -> list[dict[str, float]]:

@@ -11,7 +11,7 @@ them; deferring all rows to one product after the unroll, as the Python steps do
 
 TrainConfig.step_kernel = "cpp" selects it where it applies: an MDN head feeding back component_mean or a
 deterministic head; phi fed back free, or grounded where the task's phi is the tip plus a function of psi
-(checked on the batch); the inputs not requested back. Elsewhere, and where the extension cannot be built
+(checked on the batch); the inputs not requested back; float32 products (train.matmul_dtype). Elsewhere, and where the extension cannot be built
 (stm.cpp_ext warns once), the Python steps run. tests/test_stm_self_fed.py holds it to the Python path.
 """
 
@@ -29,7 +29,7 @@ JOINTS = 7
 
 def supported(view: PackView, cfg: TrainConfig, return_inputs: bool = False) -> bool:
     """Whether the C++ segment may run this unroll's self-fed steps (before the task and kinematics checks)."""
-    return (cfg.step_kernel == "cpp" and cfg.v > 0 and not return_inputs
+    return (cfg.step_kernel == "cpp" and cfg.v > 0 and not return_inputs and cfg.matmul_dtype == "float32"
             and (not view.is_mdn or cfg.feedback == "component_mean"))
 
 

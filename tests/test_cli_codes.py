@@ -76,3 +76,49 @@ def test_workers_variable_sets_the_default_and_the_flag_wins(monkeypatch):
     assert load_config(build_parser().parse_args(["ablation", "--profile", "smoke", "--workers", "1"])).workers == 1
     monkeypatch.delenv("ACRMDN_WORKERS")
     assert default_workers() == len(os.sched_getaffinity(0))
+
+
+@pytest.mark.parametrize("args,message", [
+    (["ablation", "--device", "tpu"], "--device: unknown device 'tpu'; allowed: auto, cpu, cuda or cuda:N"),
+    (["ablation", "--device", "cuda"], "--device: device 'cuda': torch sees no CUDA GPU here"),
+    (["sweep", "--device", "cuda:7"], "--device: device 'cuda:7': torch sees no CUDA GPU here"),
+    (["ablation", "--set", "device=tpu"], "device: unknown device 'tpu'; allowed: auto, cpu, cuda or cuda:N"),
+    (["milestones", "--study", "s", "--device", "tpu"], "--device: unknown device 'tpu'"),
+])
+def test_bad_device_is_one_line_and_exit_code_2(tmp_path, args, message, monkeypatch, capsys):
+    import torch
+
+    from experiments.cli import main
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # as on a machine without a GPU
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    assert main(args + (["--profile", "smoke"] if args[0] != "milestones" else [])) == 2
+    stderr = capsys.readouterr().err
+    errors = [line for line in stderr.splitlines() if "error" in line.lower()]
+    assert len(errors) == 1 and message in errors[0], stderr
+    assert "Traceback" not in stderr and not list(tmp_path.iterdir())  # nothing written
+
+
+def test_device_reaches_the_cells_and_is_no_part_of_their_hash():
+    from experiments.cells import build_cells
+    from experiments.study_config import load_profile
+
+    cpu, auto = (load_profile("smoke", device=d) for d in (None, "auto"))
+    assert cpu.device == "cpu" and auto.device == "auto"
+    assert cpu.study_hash() == auto.study_hash() and cpu.resolved_study_name() == auto.resolved_study_name()
+    cells = build_cells(auto)
+    assert {c.device for c in cells} == {"auto"}
+    assert [c.config_hash for c in cells] == [c.config_hash for c in build_cells(cpu)]
+    bf16 = load_profile("smoke", ["train.matmul_dtype=bfloat16"])
+    assert {c.train.matmul_dtype for c in build_cells(bf16)} == {"bfloat16"}
+    assert bf16.study_hash() != cpu.study_hash()  # it changes results: another study
+
+
+def test_cell_params_record_the_device_and_the_product_dtype():
+    from experiments.cell_run import cell_params
+    from experiments.cells import build_cells
+    from experiments.study_config import load_profile
+
+    params = cell_params(build_cells(load_profile("smoke", device="auto"))[0])
+    assert params["device"] in ("cpu", "cuda") and params["train.matmul_dtype"] == "float32"

@@ -179,6 +179,7 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
     monkeypatch.setitem(bench.SIZES, "reacher", dict(hidden=8, mixtures=2, batch=4, steps=6, gripper=False))
     out = bench.main(["--json", "--sizes", "reacher", "--rounds", "1", "--reps", "1", "--no-rollouts"])
     entry = out["training"][0]
+    assert out["device"] == "cpu"
     ms = entry["ms_per_iter"]
     assert entry["size"] == "reacher" and entry["packed_k"] == 3
     for k in ("tf", "ac_u2v2", "ac_u5v5"):
@@ -195,6 +196,7 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
         floor = entry["floor_ms_per_model_iter"][k]
         assert entry["floor_ratio"][k] == pytest.approx(per_model / floor["fp32"], rel=0.05)
         assert entry["matmuls_per_iter"][k] > 0 and floor["bf16"] > 0
+        assert entry["bf16_over_fp32"][k] == pytest.approx(ms[f"bf16_{k}"] / ms[k], rel=0.02)
     assert entry["aten_calls_per_iter"]["ac_u5v5"] > entry["aten_calls_per_iter"]["tf"] > 0
     fk = out["fk"]
     assert set(fk["us_per_call"]) == set(fk["aten_calls"]) == {"train", "train_packed", "rollouts"}

@@ -107,6 +107,7 @@ def test_cpp_segment_runs_where_it_applies(toy):
     assert not self_fed.supported(view, TrainConfig(step_kernel="cpp", v=0))  # teacher forcing: no self-fed steps
     assert not self_fed.supported(view, TrainConfig(step_kernel="cpp", feedback="mixture_mean"))
     assert not self_fed.supported(view, TrainConfig(step_kernel="cpp"), return_inputs=True)
+    assert not self_fed.supported(view, TrainConfig(step_kernel="cpp", matmul_dtype="bfloat16"))  # float32 only
 
 
 def test_a_phi_not_linear_in_the_tip_falls_back(toy):

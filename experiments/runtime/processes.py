@@ -69,6 +69,25 @@ def add_threads_option(parser) -> None:
                         f"(default: ${THREADS_ENV}, else 1; more cores train with more --workers)")
 
 
+def add_device_option(parser, what: str = "train") -> None:
+    parser.add_argument("--device", default=None, metavar="DEVICE",
+                        help=f"where models {what}: auto (cuda if torch sees a GPU, else cpu), cpu (default), cuda or "
+                             "cuda:N; rollouts' physics stays on the CPU")
+
+
+def checked_device(device: str | None) -> str | None:
+    """--device resolved here, before anything is written: ConfigError (one line) for a bad or missing device."""
+    if device is None:
+        return None
+    from stm.device import DeviceError, resolve_device
+
+    try:
+        resolve_device(device)
+    except DeviceError as e:
+        raise ConfigError(f"--device: {e}") from None
+    return device
+
+
 def set_training_threads(threads: int | None) -> None:
     """The user's `--threads N` (None: keep $OMP_NUM_THREADS or the default), for this process and its workers."""
     if threads is not None:

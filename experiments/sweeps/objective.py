@@ -169,6 +169,7 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
         from envs.datasets import load_demos
         from envs.tasks import get_task
         from experiments.cell_run import seed_everything
+        from stm.device import resolve_device
 
         run_id = link.start(trial)
         client = link.client
@@ -179,14 +180,16 @@ def objective_factory(cfg: StudyConfig, link: MlflowTrialLink):
         log_params(client, run_id, {**{f"trial.{k}": v for k, v in params.items()},
                                     **flatten({"model": model_cfg.to_dict(), "train": train_cfg.to_dict()}),
                                     "seeds": ",".join(map(str, seeds)), "task": cfg.sweep.task,
-                                    "variant": cfg.sweep.variant, **provenance_params()})
+                                    "variant": cfg.sweep.variant, "device": str(resolve_device(cfg.device)),
+                                    **provenance_params()})
         task = get_task(cfg.sweep.task, **cfg.data_options(cfg.sweep.task))
         demos = load_demos(task, seed=0)
         seed_everything(seeds[0])
         buffer = MetricBuffer(client, run_id)
         watch = SeedValidation(trial, seeds, buffer)
         try:
-            models, seconds, iterations = train_seeds(model_cfg, [c[1] for c in configs], task, demos, buffer, watch)
+            models, seconds, iterations = train_seeds(model_cfg, [c[1] for c in configs], task, demos, buffer, watch,
+                                                      cfg.device)
         except PackPruned as pruned:
             buffer.flush()
             raise optuna.TrialPruned(f"pruned at iteration {pruned.iteration}") from None
@@ -247,8 +250,8 @@ class SeedValidation:
 
 
 def train_seeds(model_cfg, train_cfgs: list, task, demos, buffer: MetricBuffer,
-                watch: SeedValidation) -> tuple[list, float, int]:
-    """Train one model per train config (seed), as one pack (one seed: a pack of one);
+                watch: SeedValidation, device: str = "cpu") -> tuple[list, float, int]:
+    """Train one model per train config (seed) on `device`, as one pack (one seed: a pack of one);
     (models, training seconds, iterations). A seed whose training diverged fails the trial."""
     from stm.training.loop import train_packed
 
@@ -262,7 +265,7 @@ def train_seeds(model_cfg, train_cfgs: list, task, demos, buffer: MetricBuffer,
     with tempfile.TemporaryDirectory(prefix="acrmdn-trial-") as tmp:
         results = train_packed(model_cfg, train_cfgs, task, demos, resume=False,
                                checkpoint_paths=[Path(tmp) / f"seed{s}.pt" for s in seeds],
-                               on_metrics=on_metrics, on_validation=watch)
+                               on_metrics=on_metrics, on_validation=watch, device=device)
     for s, r in zip(seeds, results, strict=True):
         if r.failure is not None:
             if len(seeds) == 1:
@@ -277,10 +280,12 @@ def evaluate_seeds(cfg: StudyConfig, models: list, seeds: list[int], train_cfg, 
     cell: its dataset's options, its feedback); one seed's metrics are logged as they are, several
     seeds' as seed<s>/<name> plus their mean under <name>."""
     from experiments.evaluation import evaluate_model
+    from stm.device import resolve_device
 
     ev = {**dataclasses.asdict(cfg.eval), "rollouts": cfg.sweep.eval_rollouts}
     per_seed, logged = [], []
     for model, seed in zip(models, seeds, strict=True):
+        model = model.to(resolve_device(cfg.device))
         metrics, _ = evaluate_model(model, [cfg.sweep.task], ev, seed=seed, phi_mode=train_cfg.phi_mode,
                                     data=cfg.data_options(cfg.sweep.task), train_feedback=train_cfg.feedback,
                                     temperature=train_cfg.temperature, timings=False)

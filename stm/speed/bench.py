@@ -1,26 +1,27 @@
 """Speed of the STM: training iterations and rollout throughput, side by side.
 
-    python -m stm.speed.bench [--json] [--rounds 5] [--threads 1] [--sizes reacher pick-place]
+    python -m stm.speed.bench [--json] [--rounds 5] [--threads 1] [--sizes reacher pick-place] [--device cpu]
 
 One training iteration = forward, loss, backward, Adam step, as stm.training.loop runs it (one model is a pack
 of one), on a batch at the paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
 reacher (3x64, 3 Gaussians, batch 32, 70 steps), with the task's state size.
-Timed in the same run, interleaved round by round (the machine is shared, so
-medians of interleaved rounds give fair ratios): teacher forcing (tf),
-auto-conditioning with u = v = 2 and u = v = 5 (u = v = 5 also with the C++ self-fed
-segment, stm.self_fed: *_cpp), and a plain reference (nn.LSTM + linear MDN head + mixture NLL + Adam with
-clipping, a dozen lines); and the same schedules for a pack of K = 3 models trained together
-(stm.packed): packed_speedup_* = (K x one model's ms/iter) / (the pack's ms/iter), packed_speedup_ac the
-lower of the two auto-conditioned schedules'; window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the
-whole demos over one on windows of 40 steps after a 20-step burn-in (stm.training.windows); matmul_share_ac_u5v5
-is the share of one model's a.c. iteration spent in matrix products (torch.profiler; a lower bound) and
-packed_speedup_ceiling the most a pack of K could then gain (Amdahl: products cost K-fold, the rest
-once). The floor (stm.speed.floor): the matrix products of one tf and one a.c. u = v = 5 iteration, single and
-packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms per
-model-iteration / its fp32 floor. The tip kinematics of the fed-back state (stm.fk) against
-pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK
-grounding, and 3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000
-and for 34 episodes (an evaluation cell's).
+Timed in the same run, interleaved round by round (the machine is shared, so medians of interleaved rounds
+give fair ratios): teacher forcing (tf), auto-conditioning with u = v = 2 and u = v = 5 (u = v = 5 also
+with the C++ self-fed segment, stm.self_fed: *_cpp), and a plain reference
+(nn.LSTM + linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three schedules
+for a pack of K = 3 models trained together (stm.packed): packed_speedup_* = (K x one model's ms/iter) / (the
+pack's ms/iter), packed_speedup_ac the lower of the two auto-conditioned schedules';
+window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the whole demos over one on windows of 40
+steps after a 20-step burn-in (stm.training.windows); matmul_share_ac_u5v5 is the share of one model's a.c.
+iteration spent in matrix products (torch.profiler; a lower bound) and packed_speedup_ceiling the most a pack
+of K could then gain (Amdahl: products cost K-fold, the rest once); bf16_over_fp32: the tf and a.c. u = v = 5
+iterations, single and packed, with bf16 matrix products (TrainConfig.matmul_dtype) over float32, timed in the
+same rounds. The floor (stm.speed.floor): the matrix products of one tf and one a.c. u = v = 5 iteration,
+single and packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms
+per model-iteration / its fp32 floor. The tip kinematics of the fed-back state (stm.fk) against
+pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
+3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an
+evaluation cell's).
 
 Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
 time also counts the other processes' load. Ratios are what to read.
@@ -29,6 +30,7 @@ time also counts the other processes' load. Ratios are what to read.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -36,17 +38,18 @@ import time
 
 import numpy as np
 import torch
-from torch import nn
 
 from envs.robot import NEUTRAL_Q
-from envs.tasks.base import Demos, Episode, StateLayout, Task
-from stm import cpp_ext, mdn
+from envs.tasks.base import Episode
+from stm import cpp_ext
 from stm.config import ModelConfig, TrainConfig
+from stm.device import DeviceError, resolve_device
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed import PackedAdam, PackedSTM, clip_per_model
 from stm.packed_rollout import generate_packed
 from stm.rollout import generate
+from stm.speed.bench_inputs import BenchTask, PlainMDN, bench_demos
 from stm.speed.floor import record_matmuls, replayer
 from stm.training.autoconditioning import unroll
 from stm.training.batches import DemoTensors
@@ -57,61 +60,20 @@ SIZES = {  # paper sizes: (hidden, mixtures, batch, steps, gripper)
 }
 
 
-class BenchTask(Task):
-    """phi = tip - goal, psi = goal (reacher and pick-place alike); layout of the named task."""
-
-    def __init__(self, name: str, gripper: bool):
-        self.name = self.model_task = name
-        self.layout = _task_layout(name, gripper)
-
-    def phi(self, tip_pos, psi):
-        return tip_pos - psi
-
-
-def _task_layout(name: str, gripper: bool) -> StateLayout:
-    try:
-        from envs.tasks import get_task
-
-        return get_task(name).layout
-    except Exception:  # the task may not be registered yet: same sizes as documented
-        return StateLayout(phi_dim=3, psi_dim=3, gripper=gripper)
-
-
-def bench_demos(n: int, steps: int, gripper: bool, seed: int = 0) -> Demos:
-    """Smooth random joint paths around the neutral pose (timing only needs realistic magnitudes)."""
-    rng = np.random.default_rng(seed)
-    dq = rng.normal(0, 0.01, size=(n, steps, 7)).cumsum(axis=1) * 0.1
-    q = NEUTRAL_Q + np.concatenate([np.zeros((n, 1, 7)), dq.cumsum(axis=1)], axis=1)
-    grip = (np.arange(steps + 1)[None] > steps // 2).astype(float).repeat(n, 0) if gripper else np.zeros((n, steps + 1))
-    psi = np.repeat(rng.uniform([0.4, -0.2, 0.0], [0.8, 0.4, 0.2], size=(n, 1, 3)), steps + 1, axis=1)
-    return Demos(q=q, grip=grip, psi=psi, lengths=np.full(n, steps))
-
-
-class PlainMDN(nn.Module):
-    """The reference: nn.LSTM + a linear MDN head, nothing else."""
-
-    def __init__(self, dim: int, hidden: int, layers: int, m: int):
-        super().__init__()
-        self.m, self.dim = m, dim
-        self.lstm = nn.LSTM(dim, hidden, layers, batch_first=True)
-        self.head = nn.Linear(hidden, m * (dim + 2))
-
-    def loss(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        out = self.head(self.lstm(x)[0])
-        return mdn.mixture_nll(*mdn.split_params(out, self.m, self.dim, 1e-3), y).mean()
-
-
 PACK = 3  # models per pack
 WINDOW = (40, 20)  # windowed training's case: window, burn-in (steps)
 EVAL_EPISODES = 34  # episodes a cell evaluates per seed: where batching the K models pays (1,000 are compute-bound)
 CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
 _clock = CLOCKS["cpu"]
+_device = torch.device("cpu")  # --device: where the training iterations, their floors and the rollouts run
 
 
 def _time_once(fn, reps: int) -> float:
     start = _clock()
     for _ in range(reps):
         fn()
+    if _device.type == "cuda":  # the kernels queued, done
+        torch.cuda.synchronize(_device)
     return (_clock() - start) / reps
 
 
@@ -123,7 +85,7 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK)
     for seed in range(k):
         torch.manual_seed(seed)
         models.append(STM(model_cfg, task.layout, *stats))
-    pack = PackedSTM.from_models(models)
+    pack, batch, kin = PackedSTM.from_models(models).to(_device), batch.to(_device), kin.to(_device)
     params = list(pack.stacked)
     opt, clips, active = PackedAdam(params, [1e-4] * k), torch.ones(k), torch.arange(k)
     gens = [torch.Generator().manual_seed(seed) for seed in range(k)]
@@ -148,6 +110,7 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK)
 
 # timed with their matrix-product floors
 FLOOR_CASES = ("tf", "ac_u5v5", "ac_u5v5_cpp", "packed_tf", "packed_ac_u5v5", "packed_ac_u5v5_cpp")
+BF16_CASES = tuple(k for k in FLOOR_CASES if not k.endswith("_cpp"))  # the C++ steps take float32 products only
 MATMULS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm"}
 
 
@@ -189,9 +152,9 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
     batch = data.batch(torch.arange(spec["batch"]))
     torch.manual_seed(0)
     model = STM(ModelConfig(hidden_size=spec["hidden"], num_layers=3, mixtures=spec["mixtures"]), task.layout, *stats)
-    plain = PlainMDN(task.layout.dim, spec["hidden"], 3, spec["mixtures"])
+    plain = PlainMDN(task.layout.dim, spec["hidden"], 3, spec["mixtures"]).to(_device)
     plain_opt = torch.optim.Adam(plain.parameters(), lr=1e-4)
-    x, y = model.normalize(batch.states[:, :-1]), model.normalize(batch.states[:, 1:])
+    x, y = (model.normalize(s).to(_device) for s in (batch.states[:, :-1], batch.states[:, 1:]))
     stm_step = _packed_step(task, stats, model.config, batch, kin, k=1)  # one model: stm.training.loop's pack of one
     cpp_ext.self_fed_extension()  # built (or loaded) before the timing
 
@@ -210,12 +173,15 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
     windowed = _packed_step(task, stats, model.config, data.window_batch(torch.arange(spec["batch"]), windows), kin)
     cases = {"plain": plain_step, **{k: stm_step(c) for k, c in schedules.items()},
              **{f"packed_{k}": packed(c) for k, c in schedules.items()},
-             "packed_ac_u5v5_window": windowed(schedules["ac_u5v5"])}
+             "packed_ac_u5v5_window": windowed(schedules["ac_u5v5"]),
+             **{f"bf16_{k}": (packed if "packed" in k else stm_step)(dataclasses.replace(
+                 schedules[k.removeprefix("packed_")], matmul_dtype="bfloat16")) for k in BF16_CASES}}
     for fn in cases.values():  # warm-up
         fn()
     matmuls = {k: record_matmuls(cases[k]) for k in FLOOR_CASES}
     for k, calls in matmuls.items():  # the floors, timed in the same rounds
-        cases[f"floor_fp32_{k}"], cases[f"floor_bf16_{k}"] = replayer(calls), replayer(calls, torch.bfloat16)
+        cases[f"floor_fp32_{k}"], cases[f"floor_bf16_{k}"] = replayer(calls, device=_device), \
+            replayer(calls, torch.bfloat16, _device)
     times: dict[str, list[float]] = {k: [] for k in cases}
     for _ in range(rounds):  # interleaved, so a load change hits every case alike
         for k, fn in cases.items():
@@ -236,6 +202,8 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "bf16_floor_over_fp32_floor": {k: round(med[f"floor_bf16_{k}"] / med[f"floor_fp32_{k}"], 3)
                                        for k in FLOOR_CASES},
         "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
+        # TrainConfig.matmul_dtype "bfloat16": the same iteration's ms over float32's, timed in the same rounds
+        "bf16_over_fp32": {k: round(med[f"bf16_{k}"] / med[k], 3) for k in BF16_CASES},
         "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "ac_u5v5", "ac_u5v5_cpp")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
@@ -310,7 +278,7 @@ def rollout_bench(n: int = 1000, steps: int = 70, rounds: int = 3) -> dict:
     demos = bench_demos(8, steps, False)
     data = DemoTensors.build(task, demos)
     stats = normalization_stats(data.states, torch.ones(data.states.shape[:2], dtype=torch.bool))
-    model = STM(ModelConfig(hidden_size=64, num_layers=3, mixtures=3), task.layout, *stats).eval()
+    model = STM(ModelConfig(hidden_size=64, num_layers=3, mixtures=3), task.layout, *stats).eval().to(_device)
     rng = np.random.default_rng(0)
     episodes = [Episode(q0=NEUTRAL_Q + rng.uniform(-0.2, 0.2, 7),
                         psi=np.repeat(rng.uniform([0.4, -0.2, 0.0], [0.8, 0.4, 0.2])[None], steps + 1, 0),
@@ -319,8 +287,8 @@ def rollout_bench(n: int = 1000, steps: int = 70, rounds: int = 3) -> dict:
     models = [model]
     for seed in range(1, PACK):
         torch.manual_seed(seed)
-        models.append(STM(model.config, task.layout, *stats).eval())
-    pack = PackedSTM.from_models(models)
+        models.append(STM(model.config, task.layout, *stats).eval().to(_device))
+    pack = PackedSTM.from_models(models).to(_device)
     generate_packed(pack, task, episodes[:8])  # warm-up
     few = episodes[:EVAL_EPISODES]
     secs, separate, packed, separate_few, packed_few = [], [], [], [], []
@@ -349,15 +317,24 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-rollouts", action="store_true")
     ap.add_argument("--no-fk", action="store_true", help="skip the tip kinematics' timing")
     ap.add_argument("--clock", choices=list(CLOCKS), default="cpu",
-                    help="cpu: this process's CPU time (default; steady on a shared machine); wall: elapsed time")
+                    help="cpu: this process's CPU time (default; steady on a shared machine); wall: elapsed time "
+                         "(always, on a GPU)")
+    ap.add_argument("--device", default="cpu", help="auto, cpu (default), cuda or cuda:N: where the training "
+                    "iterations, their floors and the rollouts run (the tip kinematics' comparison: the CPU)")
     args = ap.parse_args(argv)
-    global _clock
+    global _clock, _device
+    try:
+        _device = resolve_device(args.device)
+    except DeviceError as e:
+        ap.error(str(e))
+    if _device.type == "cuda":  # the host's CPU time leaves out the GPU's
+        args.clock = "wall"
     _clock = CLOCKS[args.clock]
     if args.threads:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
-              "clock": args.clock,
+              "clock": args.clock, "device": str(_device),
               "load_average_before": [round(x, 2) for x in load_before],
               "training": [training_bench(s, args.rounds, args.reps) for s in args.sizes]}
     if not args.no_fk:
@@ -380,7 +357,8 @@ def main(argv: list[str] | None = None) -> dict:
                   f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
             print(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16: "
                   + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}" for k, v in r["floor_ms_per_model_iter"].items())
-                  + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items()))
+                  + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
+                  + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
         if "fk" in result:
             fk = result["fk"]
             us, calls = fk["us_per_call"], fk["aten_calls"]

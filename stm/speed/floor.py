@@ -38,10 +38,10 @@ class _Spec:
         """A contiguous matrix, or the transposed view of a contiguous (cols, rows) one."""
         return cls((rows, cols), (1, rows) if transposed else (cols, 1), dtype)
 
-    def make(self, dtype: torch.dtype | None) -> torch.Tensor:
+    def make(self, dtype: torch.dtype | None, device: torch.device | None = None) -> torch.Tensor:
         dtype = dtype if dtype is not None and self.dtype.is_floating_point else self.dtype
         size = 1 + sum((n - 1) * s for n, s in zip(self.shape, self.stride, strict=True) if n > 0)
-        return torch.randn(size, dtype=dtype).as_strided(self.shape, self.stride)
+        return torch.randn(size, dtype=dtype, device=device).as_strided(self.shape, self.stride)
 
 
 def _lstm_layer(x: torch.Tensor, w_ih: torch.Tensor, backward: bool) -> list[tuple]:
@@ -80,10 +80,11 @@ def record_matmuls(fn) -> list[tuple]:
     return rec.calls
 
 
-def replayer(calls: list[tuple], dtype: torch.dtype | None = None):
+def replayer(calls: list[tuple], dtype: torch.dtype | None = None, device: torch.device | None = None):
     """A function that calls the recorded products again, in order, on fresh random tensors (in `dtype` where
-    given: every floating-point argument cast to it)."""
-    made = [(func, *tree_map(lambda a: a.make(dtype) if isinstance(a, _Spec) else a, (args, kwargs)))
+    given: every floating-point argument cast to it; on `device`, the CPU by default). On CUDA the fused LSTM's
+    products (cuDNN's, not oneDNN's) are not recorded: the floor of a teacher-forced iteration leaves them out."""
+    made = [(func, *tree_map(lambda a: a.make(dtype, device) if isinstance(a, _Spec) else a, (args, kwargs)))
             for func, args, kwargs in calls]
 
     def replay():

@@ -24,6 +24,7 @@ import torch
 
 from stm import mdn
 from stm.config import TrainConfig
+from stm.lstm_step import product_dtype
 from stm.model import STM, feedback_state
 from stm.packed import PackView
 from stm.packed_lstm_step import PackedStackStepper, fused_sequence, layer_sequence
@@ -68,6 +69,8 @@ def unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Ten
     return_inputs, also the normalised inputs actually fed (K, B, T, D)."""
     K, B, T1, D = states.shape
     T = T1 - 1
+    dt = product_dtype(cfg.matmul_dtype)  # None: float32 products (the fused sequence's always are)
+    view = view.with_products(dt)
     mean = view.state_mean
     z_gt = view.normalize(states[:, :, :-1])
     noisy = cfg.input_noise > 0
@@ -79,13 +82,13 @@ def unroll(view: PackView, states: torch.Tensor, q: torch.Tensor, psi: torch.Ten
     hl = cl = None  # per-layer (h, c) (K, B, H): zero states, or where a window's burn-in leaves them
     if burn is not None:
         zeros = z_gt.new_zeros(K, B, view.lstm[0][1].shape[-1])
-        hl, cl = burn_in_state(PackedStackStepper(view.lstm, view.state_std), burn[0] - mean, burn[1],
+        hl, cl = burn_in_state(PackedStackStepper(view.lstm, view.state_std, dt), burn[0] - mean, burn[1],
                                [zeros] * len(view.lstm), [zeros] * len(view.lstm))
     if cfg.v == 0:
         raw = view.head(fused_sequence(view.lstm, z_gt, hl, cl)[0])
         return (raw, z_gt) if return_inputs else raw
     centred = z_gt * view.state_std if noisy else states[:, :, :-1] - mean  # the stepper folds in the std
-    stepper = PackedStackStepper(view.lstm, view.state_std)
+    stepper = PackedStackStepper(view.lstm, view.state_std, dt)
     if hl is None:
         hl, cl = stepper.zeros(centred)
     layout = task.layout

@@ -28,6 +28,13 @@ class Batch:
     mask: torch.Tensor
     burn: tuple[torch.Tensor, torch.Tensor] | None = None
 
+    def to(self, device: torch.device) -> Batch:
+        """This batch on `device` (itself where it is there already)."""
+        if self.states.device == device:
+            return self
+        burn = None if self.burn is None else tuple(t.to(device) for t in self.burn)
+        return Batch(self.states.to(device), self.q.to(device), self.psi.to(device), self.mask.to(device), burn)
+
 
 @dataclass
 class Draw:
@@ -60,10 +67,10 @@ class DemoTensors:
     def __len__(self) -> int:
         return len(self.lengths)
 
-    def batch(self, idx: torch.Tensor) -> Batch:
-        """Demos idx (..., B), cropped to the longest."""
+    def batch(self, idx: torch.Tensor, full: bool = False) -> Batch:
+        """Demos idx (..., B), cropped to the longest (full: padded to the longest demo of all, a static shape)."""
         lengths = self.lengths[idx]
-        T = int(lengths.max())
+        T = int((self.lengths if full else lengths).max())
         mask = torch.arange(T) < lengths[..., None]
         return Batch(self.states[idx, : T + 1], self.q[idx, : T + 1], self.psi[idx, : T + 1], mask)
 
@@ -85,10 +92,10 @@ class DemoTensors:
         idx = torch.randperm(n, generator=generator)[:b] if b <= n else torch.randint(n, (b,), generator=generator)
         return Draw(idx, self.windows(idx, cfg.window, cfg.burn_in, generator) if cfg.window else None)
 
-    def stacked(self, draws: list[Draw]) -> Batch:
-        """The seeds' draws stacked (K, B, T+1, .), padded to the longest."""
+    def stacked(self, draws: list[Draw], full: bool = False) -> Batch:
+        """The seeds' draws stacked (K, B, T+1, .), padded to the longest (full: of all demos, whole demos)."""
         idx = torch.stack([d.idx for d in draws])
         if draws[0].windows is None:
-            return self.batch(idx)
+            return self.batch(idx, full)
         return self.window_batch(idx, Windows(*(torch.stack([getattr(d.windows, f.name) for d in draws])
                                                 for f in dataclasses.fields(Windows))))

@@ -58,9 +58,12 @@ def model_from_checkpoint(ckpt: dict[str, Any]) -> STM:
     return model.eval()
 
 
-def load_model(path: Path) -> STM:
-    """The trained STM stored in a checkpoint (eval mode, CPU)."""
-    return model_from_checkpoint(load_checkpoint(path))
+def load_model(path: Path, device: str | torch.device = "cpu") -> STM:
+    """The trained STM stored in a checkpoint (eval mode), on `device` (stm.device; read onto the CPU first, so
+    a checkpoint saved anywhere loads anywhere)."""
+    from stm.device import resolve_device
+
+    return model_from_checkpoint(load_checkpoint(path)).to(resolve_device(device))
 
 
 def checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, history, seconds, stopped_early):

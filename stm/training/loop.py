@@ -10,6 +10,11 @@ single-model checkpoint, stm.training.checkpoint, exact to resume), history, val
 loss or gradient goes non-finite leaves the pack with its result's `failure` (a TrainingDiverged, which `train`
 raises) and its last good checkpoint on disk; the others go on. A Ctrl-C waits for the step in progress, then each
 seed is checkpointed where it stands.
+
+`device` (stm.device: auto, cpu, cuda[:N]) is where the pack, its optimiser, the batches and the tip kinematics
+live; the models are initialised on the CPU (the same weights on any device), the data stays there and each
+iteration's batch is moved; checkpoints and results come back on the CPU. On CUDA, iterations of static shapes
+replay a captured CUDA graph (stm.training.cuda_graph).
 """
 
 from __future__ import annotations
@@ -29,12 +34,14 @@ from tqdm.auto import tqdm
 
 from envs.tasks.base import Demos, Task
 from stm.config import ModelConfig, TrainConfig
+from stm.device import resolve_device
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed import PackedAdam, PackedSTM, clip_per_model
 from stm.training.autoconditioning import iteration_schedule, unroll
 from stm.training.batches import DemoTensors
 from stm.training.checkpoint import check_resumable, checkpoint_payload, load_checkpoint, save_checkpoint
+from stm.training.cuda_graph import StepGraphs, capturable
 from stm.training.interrupts import whole_step
 from stm.training.validation import Validation
 
@@ -91,10 +98,11 @@ def train(model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, demos: Dem
           on_metrics: Callable[[int, dict[str, float]], None] | None = None,
           on_checkpoint: Callable[[Path, int], None] | None = None,
           on_validation: Callable[[int, float], bool] | None = None,
-          progress: bool = False) -> TrainResult:
+          progress: bool = False, device: str | torch.device = "cpu") -> TrainResult:
     """Train one STM on `demos` of `task` (a pack of one); raises TrainingDiverged where it diverges."""
     [result] = train_packed(
         model_cfg, [train_cfg], task, demos, checkpoint_paths=[checkpoint_path], resume=resume, progress=progress,
+        device=device,
         on_metrics=None if on_metrics is None else lambda _k, it, metrics: on_metrics(it, metrics),
         on_checkpoint=None if on_checkpoint is None else lambda _k, path, it: on_checkpoint(path, it),
         on_validation=None if on_validation is None else lambda _k, it, value: on_validation(it, value))
@@ -108,7 +116,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
                  on_metrics: Callable[[int, int, dict[str, float]], None] | None = None,
                  on_checkpoint: Callable[[int, Path, int], None] | None = None,
                  on_validation: Callable[[int, int, float], bool] | None = None,
-                 progress: bool = False) -> list[TrainResult]:
+                 progress: bool = False, device: str | torch.device = "cpu") -> list[TrainResult]:
     """Train one STM per train config (seed) on `demos`, packed; one result per seed, in order.
 
     Callbacks get the seed's index in the pack first: on_metrics(k, iteration, metrics),
@@ -119,7 +127,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
     if len(paths) != K:
         raise ValueError(f"{len(paths)} checkpoint paths for {K} seeds")
     run = _PackRun(model_cfg, train_cfgs, task, demos.with_hold(train_cfgs[0].hold_steps), paths,
-                   on_metrics, on_checkpoint, on_validation)
+                   on_metrics, on_checkpoint, on_validation, resolve_device(device))
     if resume:
         for k, s in enumerate(run.seeds):
             if s.path is not None and s.path.exists():
@@ -131,6 +139,11 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
     return [TrainResult(model=run.pack.extract(k), history=s.history, seconds=run.elapsed(s), iterations=s.iteration,
                         stopped_early=s.stopped_early, checkpoint_path=s.path, failure=s.failure)
             for k, s in enumerate(run.seeds)]
+
+
+def use_graphs(device: torch.device, cfg: TrainConfig) -> bool:
+    """Whether a run replays captured CUDA graphs of its iterations (stm.training.cuda_graph)."""
+    return device.type == "cuda" and capturable(cfg)
 
 
 @dataclass
@@ -153,10 +166,11 @@ class _PackRun:
     """The state of one train_packed call: the pack, its optimiser, the seeds, the data and the callbacks."""
 
     def __init__(self, model_cfg: ModelConfig, cfgs: list[TrainConfig], task: Task, demos: Demos,
-                 paths: list[Path | None], on_metrics, on_checkpoint, on_validation):
-        self.model_cfg, self.task = model_cfg, task
+                 paths: list[Path | None], on_metrics, on_checkpoint, on_validation,
+                 device: torch.device):
+        self.model_cfg, self.task, self.device = model_cfg, task, device
         self.on_metrics, self.on_checkpoint, self.on_validation = on_metrics, on_checkpoint, on_validation
-        self.kin = default_tip_kinematics(torch.float32)
+        self.kin = default_tip_kinematics(torch.float32).to(device)
         self.data = DemoTensors.build(task, demos)
         valid = torch.arange(self.data.states.shape[1])[None, :] <= self.data.lengths[:, None]
         stats = normalization_stats(self.data.states, valid, task.layout)
@@ -165,8 +179,9 @@ class _PackRun:
             torch.manual_seed(cfg.seed)
             models.append(STM(model_cfg, task.layout, *stats, phi_mode=cfg.phi_mode))
             self.seeds.append(_Seed(cfg, torch.Generator().manual_seed(cfg.seed), torch.get_rng_state(), path))
-        self.pack = PackedSTM.from_models(models)
+        self.pack = PackedSTM.from_models(models).to(device)
         self.opt = PackedAdam(list(self.pack.stacked), [c.lr for c in cfgs])
+        self.graphs = StepGraphs(list(self.pack.stacked)) if use_graphs(device, cfgs[0]) else None
         self.adam_template = torch.optim.Adam(models[0].parameters(), lr=cfgs[0].lr).state_dict()
         self.clips = torch.tensor([c.grad_clip if c.grad_clip > 0 else math.inf for c in cfgs])
         self.validation = {n: Validation.build(task, demos, n) for n in {c.val_episodes for c in cfgs if c.val_every}}
@@ -239,14 +254,31 @@ class _PackRun:
         groups: dict[tuple[int, int], list[int]] = {}
         for k in active:  # seeds at the same schedule step share one unroll
             groups.setdefault(iteration_schedule(seeds[k].cfg, seeds[k].iteration), []).append(k)
-        for p in pack.stacked:
-            p.grad = None
+        losses: dict[int, float] = {}
+        if self.graphs is not None and self.graphed(groups, draws, losses):
+            total = None  # the replayed graph left the gradients; every loss finite
+        else:
+            for p in pack.stacked:
+                p.grad = None
+            total, losses = self.forward(groups, draws)
+        ok = [k for k in active if seeds[k].failure is None]
+        if not ok:
+            return
+        if isinstance(total, torch.Tensor) and total.requires_grad:
+            total.backward()
+        self.update(ok, losses)
+
+    def forward(self, groups: dict[tuple[int, int], list[int]], draws: dict) -> tuple[torch.Tensor | float, dict]:
+        """The eager forward of an iteration: the sum of the finite losses to backpropagate, each seed's loss (a
+        seed with a non-finite one gets its failure)."""
+        seeds, pack = self.seeds, self.pack
         total, losses = 0.0, {}
         for (u, v), ks in groups.items():
             cfg = dataclasses.replace(seeds[ks[0]].cfg, u=u, v=v)
             view = pack.view(None if ks == list(range(pack.K)) else torch.tensor(ks))
             batch = self.data.stacked([draws[k] for k in ks])
             steps = [int(m.sum(-1).max()) for m in batch.mask]  # each seed's own T: its noise and samples
+            batch = batch.to(self.device)
             raw = unroll(view, batch.states, batch.q, batch.psi, steps, self.task, cfg, self.kin,
                          [seeds[k].gen for k in ks], batch.burn)
             group = view.losses(raw, view.normalize(batch.states[:, :, 1:]), batch.mask)
@@ -256,11 +288,38 @@ class _PackRun:
                 if not finite[j]:
                     seeds[k].failure = TrainingDiverged(seeds[k].iteration + 1, "loss")
             total = total + group[finite].sum()
-        ok = [k for k in active if seeds[k].failure is None]
-        if not ok:
-            return
-        if isinstance(total, torch.Tensor) and total.requires_grad:
-            total.backward()
+        return total, losses
+
+    def graphed(self, groups: dict[tuple[int, int], list[int]], draws: dict, losses: dict) -> bool:
+        """The iteration as a replayed CUDA graph (stm.training.cuda_graph): True with each seed's loss in `losses` and
+        the gradients in place, False where it cannot be replayed or a loss is not finite (then run eagerly)."""
+        seeds, pack, order = self.seeds, self.pack, list(groups.items())
+        batches = [self.data.stacked([draws[k] for k in ks], full=True).to(self.device) for _, ks in order]
+        idx = [None if ks == list(range(pack.K)) else torch.tensor(ks, device=self.device) for _, ks in order]
+
+        def fn(static):
+            out = []
+            for ((u, v), ks), i, b in zip(order, idx, static, strict=True):
+                view = pack.view(i)
+                cfg = dataclasses.replace(seeds[ks[0]].cfg, u=u, v=v)
+                raw = unroll(view, b.states, b.q, b.psi, [b.mask.shape[-1]] * len(ks), self.task, cfg, self.kin,
+                             [None] * len(ks))
+                out.append(view.losses(raw, view.normalize(b.states[:, :, 1:]), b.mask))
+            sum(g.sum() for g in out).backward()
+            return out
+
+        out = self.graphs.run(tuple((uv, tuple(ks)) for uv, ks in order), fn, batches)
+        if out is None:
+            return False
+        values = [g.tolist() for g in out]
+        if not all(math.isfinite(x) for g in values for x in g):
+            return False
+        losses.update({k: g[j] for ((_, ks), g) in zip(order, values, strict=True) for j, k in enumerate(ks)})
+        return True
+
+    def update(self, ok: list[int], losses: dict) -> None:
+        """Clipping and the Adam step of the seeds whose gradients are in place; their histories."""
+        seeds, pack = self.seeds, self.pack
         for p in pack.stacked:
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
@@ -291,7 +350,7 @@ class _PackRun:
             if self.on_metrics is not None:
                 self.on_metrics(k, it, training_metrics(s.history, cfg.log_every, self.elapsed(s)))
         if cfg.val_every and it % cfg.val_every == 0:
-            value = self.validation[cfg.val_episodes].error(self.pack.extract(k), self.task)
+            value = self.validation[cfg.val_episodes].error(self.pack.extract(k).to(self.device), self.task)
             s.history["val/iteration"].append(float(it))
             s.history["val/metric"].append(value)
             if self.on_validation is not None and self.on_validation(k, it, value):
