@@ -12,7 +12,8 @@ them; deferring all rows to one product after the unroll, as the Python steps do
 TrainConfig.step_kernel = "cpp" selects it where it applies: an MDN head feeding back component_mean or a
 deterministic head; phi fed back free, or grounded where the task's phi is the tip plus a function of psi
 (checked on the batch); the inputs not requested back; float32 products (train.matmul_dtype). Elsewhere,
-and where the extension cannot be built (stm.cpp_ext warns once), the Python steps run. tests/test_stm_self_fed.py holds it to the Python path.
+and where the extension cannot be built (stm.cpp_ext warns once), the Python steps run.
+tests/test_stm_self_fed.py holds it to the Python path.
 """
 
 from __future__ import annotations
