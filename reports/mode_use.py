@@ -130,8 +130,8 @@ def mode_use_markdown(study: Study, variant_label=str) -> str:
             for c in cpart.to_dict("records"):
                 bits = c["measure"].startswith("mean per-episode entropy")
                 diff = f"{c['difference']:+.2f}" if bits else f"{points(c['difference'])} points"
-                span = (_bits_interval(c["low"], c["high"]) if bits
-                        else ("–" if math.isnan(c["low"]) else f"{points(c['low'])} to {points(c['high'])}"))
+                span = ("–" if math.isnan(c["low"]) else f"{c['low']:+.2f} to {c['high']:+.2f}" if bits
+                        else f"{points(c['low'])} to {points(c['high'])}")
                 clines.append(f"| {variant_label(c['A'])} | {variant_label(c['B'])} | {c['measure']} | {diff} | "
                               f"{span} | {p_value(c['p'])} | {c['n']} |")
             out.append("\n".join(clines))
