@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from experiments.stats import seed_interval, sign_flip_p
-from reports.mode_use import comparisons, variant_summary
+from reports.mode_use import comparisons, even_coin_bits, variant_summary
 
 
 def _rows() -> pd.DataFrame:
@@ -35,3 +35,8 @@ def test_paired_comparisons_of_the_mixture_head_with_its_deterministic_twin():
     assert (both["A"], both["B"], both["n"]) == ("ac-lstm-mdn", "ac-lstm", 3)
     assert both["difference"] == pytest.approx(0.6) and both["p"] == sign_flip_p([0.5, 0.7, 0.6]) == 0.25
     assert len(c) == 2  # lstm-mdn / lstm absent from the rows: no comparison
+
+
+def test_an_even_coin_averages_below_one_bit_over_r_draws():
+    assert even_coin_bits(1) == 0 and even_coin_bits(2) == pytest.approx(0.5)  # 2 draws: half the time 1/1
+    assert even_coin_bits(10) == pytest.approx(0.9235, abs=1e-4)
