@@ -224,6 +224,7 @@ class CellRun:
         import numpy as np
 
         from experiments.evaluation import evaluate_model, rollout_arrays, rollout_figure
+        from experiments.mode_repeats import write_mode_tables
         from experiments.model_logging import log_stm  # the trained STM as the run's MLflow model "model"
         from stm.device import resolve_device
 
@@ -246,6 +247,7 @@ class CellRun:
         for d in details:  # per-episode paths and outcomes for the report's trajectory figures
             np.savez_compressed(roll_dir / f"{d.task}.npz", **rollout_arrays(d, n_expert=n_fig))
             timing[d.task] = d.timing
+        write_mode_tables(details, roll_dir)  # rollouts/modes/<task>.json where eval.mode_repeats measured them
         (roll_dir / "ik_timing.json").write_text(json.dumps(timing, indent=2))
         client.log_artifacts(run_id, str(roll_dir), "rollouts")
         if n_fig:

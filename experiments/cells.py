@@ -42,7 +42,10 @@ class Cell:
         return out
 
     def eval_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self.eval).items()}
+        out = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self.eval).items()}
+        if not out.get("mode_repeats"):  # absent when 0: cells of studies before the option keep their hashes
+            out.pop("mode_repeats", None)
+        return out
 
     @property
     def config_hash(self) -> str:

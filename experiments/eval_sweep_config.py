@@ -42,6 +42,9 @@ class EvalConfig:
     circle_radii: Radii = (0.05, 0.10, 0.15)  # m; the paper's evaluation radii
     circle_unseen_radii: Radii = (0.075, 0.125)  # m; radii absent from the demos
     figures: NonNegativeInt = 4  # rollouts drawn in each task's figure (0: no figures)
+    # tasks with modes: each episode rolled out this many times with distinct sampling seeds, mode use per
+    # episode measured (experiments.mode_repeats); 0: not measured. Left out of the hash when 0.
+    mode_repeats: NonNegativeInt = 0
 
 
 @dataclass(frozen=True, config=STRICT)

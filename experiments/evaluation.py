@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from envs.figure_files import save_figure
+from experiments.mode_repeats import mode_metrics, repeat_rollouts, task_modes
 from experiments.stats import run_success_metrics
 
 log = logging.getLogger(__name__)
@@ -38,6 +39,7 @@ class TaskEvaluation:
     seed: int = 0  # the training seed of the evaluated model
     episode_seed: int = 0  # the seed the episodes were drawn with (episode_seed(eval seed, seed))
     feedback: str = ""  # what the rollouts fed back
+    modes: dict[str, Any] | None = None  # eval.mode_repeats > 0 on a task with modes: mode_repeats.mode_table
 
 
 def episode_seed(eval_seed: int, train_seed: int) -> int:
@@ -97,6 +99,7 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: Mapping[str, Any], *,
     if feedback == "sample":
         gen_kwargs["temperature"] = temperature
     ep_seed = episode_seed(int(eval_cfg["seed"]), seed)
+    repeats = int(eval_cfg.get("mode_repeats", 0) or 0)
     for name in eval_tasks:
         task = task_class(name).for_evaluation(data, eval_cfg)
         episodes = task.episodes(int(eval_cfg["rollouts"]), ep_seed)
@@ -109,9 +112,12 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: Mapping[str, Any], *,
         n_traj += len(episodes)
         m = task_metrics(task, results, episodes)
         m[f"{name}/episode_seed"] = float(ep_seed)
-        metrics.update(m)
         detail = TaskEvaluation(name, episodes, rollouts.q, results, m, seed=seed, episode_seed=ep_seed,
                                 feedback=feedback)
+        if repeats and task_modes(task):  # after the ordinary evaluation: its rollout is repeat 0, unchanged
+            detail.modes = repeat_rollouts(model, task, episodes, results, gen_kwargs, repeats)
+            m.update(mode_metrics(name, task_modes(task), np.asarray(detail.modes["mode"])))
+        metrics.update(m)
         if timings:
             detail.timing = _timing(model, task, episodes, rollouts, gen_kwargs)
         details.append(detail)

@@ -111,6 +111,7 @@ def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None
     import numpy as np
 
     from experiments.evaluation import evaluate_model, rollout_arrays
+    from experiments.mode_repeats import write_mode_tables
     from stm.device import resolve_device
     from stm.training.checkpoint import load_model
 
@@ -138,6 +139,7 @@ def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None
             roll_dir.mkdir()
             for d in details:
                 np.savez_compressed(roll_dir / f"{d.task}.npz", **rollout_arrays(d))
+            write_mode_tables(details, roll_dir)  # where the source cell measured mode use per episode
             client.log_artifacts(run_id, str(roll_dir), "rollouts")
         client.set_terminated(run_id, "FINISHED")
         return "FINISHED", ""

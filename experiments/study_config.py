@@ -131,6 +131,8 @@ class StudyConfig:
         """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor
         workers/pack/keep_checkpoints/device)."""
         d = self.to_dict()
+        if not d["eval"].get("mode_repeats"):  # absent when 0, as in Cell.eval_dict: earlier studies keep their hash
+            d["eval"].pop("mode_repeats", None)
         return config_hash({k: d[k] for k in ("model", "train", "per_task", "eval")})
 
     def resolved_study_name(self) -> str:

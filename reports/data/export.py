@@ -10,8 +10,9 @@ An export folder holds:
                 histories (every metric key: [[step, timestamp ms, value], ...] sorted, thinned as
                 HISTORY_NOTE says) and artifacts (path -> sha256 of the exported file); plus format,
                 study_name, experiment (the study kind).
-    artifacts/<run_id>/rollouts/<task>.npz and rollouts/ik_timing.json: the artifacts the reports read; nothing
-                else (no checkpoints, models or figures). Float arrays are stored as float32.
+    artifacts/<run_id>/rollouts/<task>.npz, rollouts/ik_timing.json and rollouts/modes/<task>.json (mode use per
+                episode, experiments.mode_repeats): the artifacts the reports read; nothing else (no checkpoints,
+                models or figures). Float arrays are stored as float32.
 
 A snapshot (`--with-checkpoints`) is an export that can also be trained on: each unfinished cell's resume
 checkpoint (checkpoint/model.pt: weights, optimiser, RNG state, history) and every cell's kept checkpoints
@@ -41,6 +42,7 @@ import numpy as np
 
 from envs.fileio import atomic_write_bytes
 from experiments.cell_run import CHECKPOINT_DIR, CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR
+from experiments.mode_repeats import MODES_DIR
 from experiments.runtime.tracking import PARENT_TAG, store_dir
 from reports.data.store import Store, Study
 
@@ -169,10 +171,12 @@ class _Exporter:
         return {p: Path(self.client.download_artifacts(run.info.run_id, p, str(tmp))).read_bytes() for p in paths}
 
     def artifacts(self, run_id: str, tmp: Path) -> dict[str, bytes]:
-        """rollouts/*.npz (float32) and rollouts/ik_timing.json (canonical JSON) of a run, as exported bytes."""
+        """rollouts/*.npz (float32), rollouts/ik_timing.json and rollouts/modes/*.json (canonical JSON) of a run, as
+        exported bytes."""
         listed = self.listed(run_id, "rollouts")
         out = {}
-        for path in sorted(p for p in listed if p.endswith(".npz") or p in ROLLOUT_FILES):
+        for path in sorted(p for p in listed if p.endswith(".npz") or p in ROLLOUT_FILES
+                           or (p.startswith(f"{MODES_DIR}/") and p.endswith(".json"))):
             local = Path(self.client.download_artifacts(run_id, path, str(tmp)))
             try:
                 if path.endswith(".npz"):

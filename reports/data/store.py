@@ -20,6 +20,10 @@ Child artifact `rollouts/<E>.npz` (np.savez_compressed; metres, robot base frame
     (changing goal; NaN-padded rows at the end); every other per-episode numeric result of the task's
     evaluate as (B,) float under its own name, NaN where missing (e.g. multimodal tasks: mode_<name> 0/1 one per
     mode, between 0/1, collided 0/1, lateral_offset m, posture_coordinate).
+Child artifact `rollouts/modes/<E>.json` (eval.mode_repeats R > 0, tasks with modes; experiments.mode_repeats):
+    {task, modes, repeats, deterministic, sampling_seeds (R,), mode (B, R) index or -1, success (B, R) 0/1,
+    entropy_bits (B,), every_mode (B,)}; with the metrics `E/modes_repeats`, `E/modes_entropy_bits_mean`,
+    `E/modes_both_share`, `E/modes_share_<name>`, `E/modes_between_share`.
 Child artifact `rollouts/ik_timing.json`: {E: {"n_trajectories", "batch_size", "horizon",
     "stm_seconds_per_traj", "stm_batched_seconds_per_traj", "ik_seconds_per_traj",
     "ik_batched_seconds_per_traj"}}; absent -> the `time/*_seconds_per_traj` metrics of the run.

@@ -69,7 +69,7 @@ import pandas as pd
 
 from envs.fileio import atomic_write_text
 from reports import paper
-from reports.analyses import multimodal, success_vs_iterations
+from reports.analyses import mode_use, multimodal, success_vs_iterations
 from reports.data.store import DEFAULT_TRACKING_URI, Store, StoreError, Study, file_safe
 from reports.plotting import FigureResult, plt
 from reports.results import comparisons
@@ -263,6 +263,7 @@ ABLATION_TABLES: dict[str, Callable[[Results, Study], Table | pd.DataFrame | str
     "budget_table": lambda r, s: tables.budget_table(s),
     "multimodal_table": lambda r, s: multimodal.multimodal_markdown(multimodal.multimodal_table(s),
                                                                     paper.variant_label),
+    "mode_use_table": lambda r, s: mode_use.mode_use_markdown(s, paper.variant_label),
 }
 ABLATION_FIGURES: dict[str, Callable[[Results, Study, Path], FigureResult]] = {
     "success_bars": lambda r, s, f: ablation_figures.success_bars(r.summary("success", s), s, f),
@@ -273,6 +274,7 @@ ABLATION_FIGURES: dict[str, Callable[[Results, Study, Path], FigureResult]] = {
     "tip_paths": lambda r, s, f: trajectories.tip_paths(s, f),
     "changing_goal": lambda r, s, f: trajectories.changing_goal(s, f),
     "mode_paths": lambda r, s, f: multimodal.mode_paths(s, f),
+    "mode_entropy": lambda r, s, f: mode_use.mode_entropy(s, f),
     "success_vs_iterations": lambda r, s, f: success_vs_iterations.success_vs_iterations(s, f),  # of a milestones study
 }
 
