@@ -3,6 +3,7 @@
 
     {{ compare("EVAL_TASK", "ROW", "ROW", ...) }}    a table, one line per pair of rows (A, B, A, B, ...)
     {{ difference("EVAL_TASK", "ROW", "ROW") }}      the same comparison, inline in a sentence
+    {{ rate("EVAL_TASK", "ROW") }}                   one row's mean success and seed-level interval, inline
     {{ comparisons("TASK", "STUDY", ...) }}          the paper's comparisons within each named study, and each
                                                      study against the first for every variant they share
 
@@ -20,9 +21,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import pandas as pd
 
-from experiments.stats import group_comparison, p_value, paired_comparison, points
+from experiments.stats import group_comparison, interval, p_value, paired_comparison, points, seed_interval
 from reports import paper
 from reports.data.store import Study, order_variants
 from reports.results.template import ROW_SEPARATOR
@@ -148,6 +150,15 @@ def sentence(c: dict) -> str:
     p = p_value(c["p"])
     return (f"{points(c['difference'])} points (95 % interval {_points_interval(c)}; {_test(c)}; "
             f"p {p if p.startswith('<') else '= ' + p})")
+
+
+def rate_sentence(studies: dict[str, Study], eval_task: str, row: str) -> str:
+    """{{ rate(...) }}: a row's mean success over its seeds inline, with the seed-level interval a sentence
+    about a target quotes: '96 % (seed-level 95 % interval 89-100 %; 5 seeds)'."""
+    study, variants = parse_row(row)
+    rates = list(side(dict.fromkeys(variants, studies[study]), eval_task).runs["success_rate"])
+    low, high = seed_interval(rates)
+    return f"{100 * np.mean(rates):.0f} % (seed-level 95 % interval {interval(low, high)}; {len(rates)} seeds)"
 
 
 def between(studies: dict[str, Study], eval_task: str, a: str, b: str) -> dict:

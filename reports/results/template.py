@@ -6,7 +6,8 @@ before any study is read so that a typo is one line naming it (with its line), n
     {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}  {{ lever("TASK", "STUDY", "STUDY", ...) }}
     {{ goal_switch("TASK", "STUDY", "STUDY", ...) }}  {{ stacking("TASK", "STUDY", "STUDY", ...) }}
     {{ comparisons("TASK", "STUDY", ...) }}  {{ compare("EVAL_TASK", "ROW", "ROW", ...) }}
-    {{ difference("EVAL_TASK", "ROW", "ROW") }}  (a ROW is STUDY/VARIANT[+VARIANT...]: reports.results.comparisons)
+    {{ difference("EVAL_TASK", "ROW", "ROW") }}  {{ rate("EVAL_TASK", "ROW") }}
+    (a ROW is STUDY/VARIANT[+VARIANT...]: reports.results.comparisons)
 
 The ablation tables and figures take an optional study="NAME" (a study_name or parent run id), e.g.
 {{ success_table(study="multimodal") }} or {{ figure("tip_paths", study="multimodal") }}; without it they show
@@ -27,10 +28,11 @@ MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking", "comparisons"
 # placeholders whose arguments are an evaluated task, then pairs of rows STUDY/VARIANT[+VARIANT...]
 # (reports.results.comparisons)
 ROW_PAIRS = ("compare", "difference")
+ROW_KINDS = (*ROW_PAIRS, "rate")  # placeholders whose arguments are an evaluated task, then rows
 ROW_SEPARATOR = "/"
 # name -> (min, max) arguments
 WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), **{k: (2, 12) for k in MULTI_STUDY},
-            "compare": (3, 21), "difference": (3, 3)}
+            "compare": (3, 21), "difference": (3, 3), "rate": (2, 2)}
 SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 STUDY = "study"  # the keyword that picks an ablation-kind placeholder's study
 
@@ -64,7 +66,7 @@ class Placeholder:
         else its study="NAME" if any."""
         if self.kind in MULTI_STUDY:
             return self.args[1:]
-        if self.kind in ROW_PAIRS:
+        if self.kind in ROW_KINDS:
             return tuple(dict.fromkeys(row.rpartition(ROW_SEPARATOR)[0] for row in self.args[1:]))
         return () if self.study is None else (self.study,)
 
@@ -90,7 +92,8 @@ class Vocabulary:
                           '{{ sweep_table("TASK") }}', '{{ sweep_figure("TASK"[, "NAME"]) }}',
                           *(f'{{{{ {k}("TASK", "STUDY", ...) }}}}' for k in MULTI_STUDY),
                           '{{ compare("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT", ...) }}',
-                          '{{ difference("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT") }}'])
+                          '{{ difference("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT") }}',
+                          '{{ rate("EVAL_TASK", "STUDY/VARIANT") }}'])
 
 
 def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
@@ -116,6 +119,8 @@ def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
     if name in ROW_PAIRS and (len(ph.args) % 2 == 0 or not all(ROW_SEPARATOR in a.strip(ROW_SEPARATOR)
                                                                 for a in ph.args[1:])):
         raise ResultsError(f"{ph}: {name} takes an evaluated task, then pairs of rows STUDY{ROW_SEPARATOR}VARIANT")
+    if name == "rate" and ROW_SEPARATOR not in ph.args[1].strip(ROW_SEPARATOR):
+        raise ResultsError(f"{ph}: rate takes an evaluated task, then a row STUDY{ROW_SEPARATOR}VARIANT")
     if name == "sweep_figure" and len(ph.args) == 2 and ph.args[1] not in SWEEP_FIGURES:
         raise ResultsError(f"unknown sweep figure {ph.args[1]!r} in {ph}; known: {', '.join(SWEEP_FIGURES)}")
     return ph

@@ -44,6 +44,7 @@ Placeholders of the template:
                              (reports.results.comparisons)
     {{ compare("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT", ...) }}  those of any pairs of rows, as a table;
     {{ difference("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT") }}  one of them inline, for a sentence
+    {{ rate("EVAL_TASK", "STUDY/VARIANT") }}  a row's mean success and seed-level interval inline (a target sentence)
 
 New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder(results, study) returning a
 Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
@@ -77,7 +78,7 @@ from reports.results.across import ACROSS, at_iteration, whole_study
 from reports.results.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.results.provenance import provenance_table
 from reports.results.selection import Selection, select_studies
-from reports.results.template import ROW_PAIRS, SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
+from reports.results.template import ROW_KINDS, SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
 from reports.study_report import ablation_figures, sweep_summary, tables, trajectories
 from reports.study_report.sweep_summary import sweep_task
 from reports.study_report.tables import Table
@@ -212,6 +213,8 @@ class Results:
         try:
             if ph.kind == "difference":
                 return comparisons.sentence(comparisons.between(self.named, eval_task, *rows))
+            if ph.kind == "rate":
+                return comparisons.rate_sentence(self.named, eval_task, rows[0])
             return comparisons.compare_table(self.named, eval_task, rows)
         except comparisons.ComparisonError as exc:
             raise ResultsError(f"{ph}: {exc}") from None
@@ -231,7 +234,7 @@ class Results:
             return self.sweep_figures(ph)
         if ph.kind in ACROSS:
             return self.across(ph)
-        if ph.kind in ROW_PAIRS:
+        if ph.kind in ROW_KINDS:
             return self.comparison(ph)
         return self.ablation_figure(ph)
 
