@@ -11,7 +11,8 @@ import torch
 from envs.kinematics import SawyerKinematics, default_kinematics
 from envs.robot import LIMITS, NEUTRAL_Q, URDFError, load_in_pybullet
 
-# (q, right_hand position, right_gripper_tip position) from /work/shared/SAWYER.md
+# (q, right_hand position, right_gripper_tip position): reference poses of the Sawyer kinematic facts the URDF
+# (envs/assets/sawyer/sawyer.urdf) was written from
 REFERENCE = [
     (np.zeros(7), (1.0155, 0.1603, 0.3170), (1.15112, 0.1603, 0.31700)),
     (NEUTRAL_Q, (0.449598, 0.1603, 0.215754), (0.449705, 0.1603, 0.080134)),
