@@ -1,4 +1,4 @@
-"""Concurrency and process faults on one machine (issue 19), each by real processes on a real
+"""Concurrency and process faults on one machine, each by real processes on a real
 SQLite store: a working directory we may not write to, studies racing on a fresh store's
 schema, two identical studies at once, the main process killed with SIGKILL while its workers
 train, a Ctrl-C that reaches a worker twice while it checkpoints, a missing store folder or a corrupt

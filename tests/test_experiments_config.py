@@ -223,9 +223,9 @@ def test_cell_keys_and_hashes_match_the_recorded_ones():
     """A re-run on an existing store skips cells whose config hash it finds FINISHED: the keys
     and hashes of every profile (recorded on main 991f874, tests/data/cell_hashes.json) must not
     move, or every cell of every existing study would be retrained. The paper profile's entry was
-    re-recorded on 1 Dec 2026 when that profile became the headline protocol (issue 16), quick's
+    re-recorded on 1 Dec 2026 when that profile became the headline protocol, quick's
     the same day when its pick-and-place iterations rose to 2,000 and on 2 Dec when its rollouts per
-    seed went from 50 to 40 (issue 15)."""
+    seed went from 50 to 40."""
     import json
 
     recorded = json.loads((REPO / "tests" / "data" / "cell_hashes.json").read_text())
@@ -240,7 +240,7 @@ def test_cell_keys_and_hashes_match_the_recorded_ones():
 
 @pytest.mark.slow
 def test_a_profile_file_that_does_not_parse_is_one_line_naming_the_file_and_line(tmp_path, monkeypatch, capsys):
-    """Issue 19, 1: a TOML syntax error was a 30-line tomllib traceback and exit 1."""
+    """A TOML syntax error was a 30-line tomllib traceback and exit 1."""
     bad = tmp_path / "mine.toml"
     bad.write_text('tasks = ["reacher"]\nseeds = \n')
     from experiments.cli import main
@@ -277,7 +277,7 @@ def test_a_profile_can_be_any_toml_file(tmp_path):
 
 
 def test_the_study_name_tells_studies_of_other_tasks_and_variants_apart():
-    """Issue 19, 6: studies with different --variants shared one parent run (and overwrote its status)."""
+    """Studies with different --variants shared one parent run (and overwrote its status)."""
     base = load_profile("smoke").resolved_study_name()
     lstm = load_profile("smoke", variants=["lstm"]).resolved_study_name()
     ac = load_profile("smoke", variants=["ac-lstm-mdn"]).resolved_study_name()

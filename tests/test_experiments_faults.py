@@ -1,6 +1,6 @@
-"""Faults on one machine (issue 9): Ctrl-C during a study, a corrupt checkpoint artifact, a
+"""Faults on one machine: Ctrl-C during a study, a corrupt checkpoint artifact, a
 NaN loss in one cell, a tracking server that is down and a SQLite store that is locked at
-start, a sweep killed mid-trial and re-run (issue 19: it exits 0 once the retry completes). Process
+start, a sweep killed mid-trial and re-run (it exits 0 once the retry completes). Process
 and concurrency faults: tests/test_experiments_concurrency.py. (A cell killed with SIGKILL
 mid-training: tests/test_experiments_e2e.py; a damaged dataset cache: tests/test_datasets.py;
 foreign checkpoints: tests/test_stm_train.py.)"""

@@ -1,4 +1,4 @@
-"""Sweeps that discriminate (issue 16, 5): several training seeds per trial (packed; the objective is
+"""Sweeps that discriminate: several training seeds per trial (packed; the objective is
 their mean), a grid over m crossed with (u, v) pairs that visits exactly its points, TPE that models
 after a third of the trials, and Optuna's parameter importances on the parent run and in the report."""
 

@@ -1,4 +1,4 @@
-"""Success vs number of demonstrations, across studies that differ only in it (issue 16's data-scaling figure):
+"""Success vs number of demonstrations, across studies that differ only in it:
 {{ data_scaling("TASK", "STUDY", "STUDY", ...) }} in a RESULTS template. Each study contributes its finished
 runs of training task TASK, at the number of demonstrations they trained on (their `data.n_demos` param, else
 the task's default; studies of different variants may share a number); the table gives, per evaluated task,

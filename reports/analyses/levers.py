@@ -1,4 +1,4 @@
-"""A lever's studies side by side (issue 16's "deviations that help"): {{ lever("TASK", "STUDY", "STUDY", ...) }}
+"""A lever's studies side by side (the "deviations that help"): {{ lever("TASK", "STUDY", "STUDY", ...) }}
 in a RESULTS template; STUDY@ITERATION names the checkpoints a milestones study kept at that iteration. Each
 study contributes its finished runs of training task TASK; what sets the studies apart is read from the store,
 not written by hand: the settings (params data.*, model.*, train.*, eval.*) whose values differ between the

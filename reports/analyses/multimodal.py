@@ -1,4 +1,4 @@
-"""Multimodal demonstrations (issue 17): per task whose runs logged a rate per mode, the success of each
+"""Multimodal demonstrations: per task whose runs logged a rate per mode, the success of each
 variant with its intervals beside the split of its rollouts over the modes (and between them), and a top view
 of the tool-tip paths coloured by the mode each took, next to the demonstrations' paths coloured by theirs.
 

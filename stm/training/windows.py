@@ -1,4 +1,4 @@
-"""Windowed training with burn-in (a lever of issue 16, not in the paper): instead of its whole demonstration,
+"""Windowed training with burn-in (a lever, not in the paper): instead of its whole demonstration,
 each sample of a batch trains `window` consecutive steps of it, and the LSTM state at the window's first step
 is warmed up by the `burn_in` ground-truth steps before it, run without gradient (R2D2's burn-in). An
 iteration then unrolls window + burn_in steps instead of the longest demonstration (pick-and-place: ~170).
