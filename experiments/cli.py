@@ -1,4 +1,4 @@
-"""`python -m experiments {ablation,sweep,smoothing,idm,milestones,ui}`.
+"""`python -m experiments {ablation,sweep,smoothing,idm,milestones,scaling,ui}`.
 
 Exit codes: 0 success; 1 some cells/trials failed (summary printed); 2 bad configuration
 (one line naming the field and its allowed values, printed before anything is written);
@@ -82,6 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     from experiments.milestones import add_parser as add_milestones
 
     add_milestones(sub)
+    from experiments.scaling import add_parser as add_scaling
+
+    add_scaling(sub)
 
     ui = sub.add_parser("ui", help="MLflow UI on 127.0.0.1:5000 over the study store")
     ui.add_argument("--host", default="127.0.0.1")
@@ -143,6 +146,15 @@ def main(argv: list[str] | None = None) -> int:
 
         args.tasks, args.variants = _split(args.tasks), _split(args.variants)
         return milestones_main(args)
+
+    if args.command == "scaling":
+        from experiments.scaling import main as scaling_main
+
+        try:
+            return scaling_main(args)
+        except ConfigError as e:
+            print(_one_line(f"error: {e}"), file=sys.stderr)
+            return 2
 
     if args.command == "ui":
         from experiments.ui import serve
