@@ -25,6 +25,7 @@ from experiments.runtime.tracking import (
     Client,
     MetricBuffer,
     flatten,
+    git_commit,
     last_logged_step,
     log_metrics,
     log_params,
@@ -79,8 +80,21 @@ def cell_params(cell: Cell) -> dict[str, str]:
     from stm.device import resolve_device
 
     return {**flatten(cell.resolved), "train.matmul_dtype": cell.train.matmul_dtype,
-            "device": str(resolve_device(cell.device)), "profile": cell.profile, "study_name": cell.study_name,
-            **provenance_params()}
+            "train.step_kernel": cell.train.step_kernel, "device": str(resolve_device(cell.device)),
+            "profile": cell.profile, "study_name": cell.study_name, **provenance_params()}
+
+
+TRAINED_ON = "trained_on"
+
+
+def trained_on(previous: str, iteration: int, commit: str, step_kernel: str) -> str:
+    """The run's tag `trained_on`: `commit:step_kernel@iteration` for each stretch of training that started on
+    another commit or step kernel than the one before (a resumed run may go on with newer code), `;`-separated."""
+    route = f"{commit}:{step_kernel}"
+    entries = [e for e in previous.split(";") if e]
+    if entries and entries[-1].rsplit("@", 1)[0] == route:
+        return previous
+    return ";".join([*entries, f"{route}@{iteration}"])
 
 
 def setup_process(log_level: int, threads: int | None) -> None:
@@ -197,6 +211,10 @@ class CellRun:
             else:
                 log.info("cell %s resumes from its checkpoint at iteration %d", cell.key, self.resumed_from)
                 set_tags(client, run_id, {"resumed_from_iteration": self.resumed_from})
+        previous = client.get_run(run_id).data.tags.get(TRAINED_ON, "")
+        route = trained_on(previous, self.resumed_from, git_commit(), cell.train.step_kernel)
+        if route != previous:
+            set_tags(client, run_id, {TRAINED_ON: route})
         # a resumed run recomputes the steps after its checkpoint exactly: drop the ones already logged
         # (a retrain from scratch recomputes the same values too: the seed is the cell's)
         logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) if fetched is not None else -1

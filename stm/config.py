@@ -41,14 +41,18 @@ class _Config:
     # fields added after studies were stored -> their defaults: left out of hashed_dict while at them, so those
     # studies' cells keep their config hashes (tests/test_experiments_config.py) and re-runs skip them
     LATER_DEFAULTS: ClassVar[dict[str, Any]] = {}
+    # how a result is computed, not what it is (an equivalent route, held to the reference by tests): never
+    # hashed, so a cell may resume on another route; the run records it (experiments.cell_run.cell_params)
+    UNHASHED: ClassVar[frozenset[str]] = frozenset()
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)  # type: ignore[call-overload]
 
     def hashed_dict(self) -> dict[str, Any]:
-        """What a cell's config hash (and its logged params) holds: to_dict less later fields at their defaults."""
+        """What a cell's config hash (and its logged params) holds: to_dict less later fields at their defaults
+        and less the unhashed ones."""
         return {k: v for k, v in self.to_dict().items()
-                if not (k in self.LATER_DEFAULTS and v == self.LATER_DEFAULTS[k])}
+                if k not in self.UNHASHED and not (k in self.LATER_DEFAULTS and v == self.LATER_DEFAULTS[k])}
 
     @classmethod
     def from_dict(cls: type[C], d: dict[str, Any]) -> C:
@@ -74,8 +78,8 @@ class ModelConfig(_Config):
 class TrainConfig(_Config):
     """Optimisation and the auto-conditioning schedule."""
 
-    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0, "step_kernel": "python",
-                                                "matmul_dtype": "float32"}
+    LATER_DEFAULTS: ClassVar[dict[str, Any]] = {"hold_steps": 0, "window": 0, "burn_in": 0, "matmul_dtype": "float32"}
+    UNHASHED: ClassVar[frozenset[str]] = frozenset({"step_kernel"})
 
     iters: NonNegativeInt = 2000  # optimizer steps
     batch_size: PositiveInt = 32  # demonstrations per step (sampled without replacement when possible)
@@ -94,7 +98,7 @@ class TrainConfig(_Config):
     window: NonNegativeInt = 0
     burn_in: NonNegativeInt = 0  # with window: ground-truth steps before it that warm the state, no gradient
     # "cpp": the self-fed steps as one C++ op per segment (stm.self_fed; same maths, falls back to "python" where
-    # it does not apply or cannot be built)
+    # it does not apply or cannot be built); unhashed: a cell may resume on either
     step_kernel: StepKernel = "python"
     # the matrix products of the LSTM stack and the head (forward and backward) in this dtype; state, elementwise
     # maths, kinematics, loss, master weights and Adam stay float32 (stm.lstm_step.product_dtype)
