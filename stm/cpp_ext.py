@@ -19,7 +19,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-SOURCES = [Path(__file__).parent / "csrc" / name for name in ("self_fed.cpp", "lstm_cell.cpp")]
+SOURCES = [Path(__file__).parent / "csrc" / name for name in ("self_fed.cpp", "lstm_cell.cpp", "mdn_nll.cpp")]
 NAME = "stm_self_fed"
 load_seconds: float | None = None  # how long loading took in this process (a first build: about a minute)
 
@@ -38,8 +38,8 @@ def _find_ninja() -> None:
 
 @functools.cache
 def self_fed_extension():
-    """The compiled module (segment_* and sequence_* forward and backward), or None (one warning) where it cannot
-    be built. A first build takes about a minute on two cores (logged at INFO with the load time, kept in
+    """The compiled module (segment_*, sequence_* and mdn_nll_* forward and backward), or None (one warning) where it
+    cannot be built. A first build takes about a minute on two cores (logged at INFO with the load time, kept in
     `load_seconds`); later processes load the cached build in well under a second."""
     global load_seconds
     try:

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "lstm_cell.h"
+#include "mdn_nll.h"
 
 using stm_cpp::Layer;
 using stm_cpp::Sequence;
@@ -201,4 +202,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   pybind11::class_<Sequence, std::shared_ptr<Sequence>>(module, "Sequence");
   module.def("sequence_forward", &stm_cpp::sequence_forward, "known inputs through the stack, forward");
   module.def("sequence_backward", &stm_cpp::sequence_backward, "known inputs through the stack, backward");
+  module.def("mdn_nll_forward", &stm_cpp::mdn_nll_forward, "mixture NLL per row (and what its backward needs)");
+  module.def("mdn_nll_backward", &stm_cpp::mdn_nll_backward, "mixture NLL, gradient of the raw head outputs");
 }
