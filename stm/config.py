@@ -97,8 +97,9 @@ class TrainConfig(_Config):
     # steps of a demo trained per sample (0: the whole demo; stm.training.windows; not in the paper)
     window: NonNegativeInt = 0
     burn_in: NonNegativeInt = 0  # with window: ground-truth steps before it that warm the state, no gradient
-    # "cpp": the self-fed steps as one C++ op per segment (stm.self_fed; same maths, falls back to "python" where
-    # it does not apply or cannot be built); unhashed: a cell may resume on either
+    # "cpp": the self-fed steps as one C++ op per segment (stm.self_fed) and the MDN loss as one fused C++ op
+    # (stm.mdn_fused); same maths, float32 rounding apart; falls back to "python" where it does not apply or cannot
+    # be built; unhashed: a cell may resume on either
     step_kernel: StepKernel = "python"
     # the matrix products of the LSTM stack and the head (forward and backward) in this dtype; state, elementwise
     # maths, kinematics, loss, master weights and Adam stay float32 (stm.lstm_step.product_dtype)

@@ -22,7 +22,7 @@ import torch
 from torch import nn
 
 from envs.tasks.base import StateLayout
-from stm import mdn
+from stm import mdn, mdn_fused
 from stm.config import ModelConfig
 
 STD_FLOOR = 1e-6  # a constant state dimension normalises to 0 instead of dividing by 0
@@ -72,13 +72,18 @@ class STM(nn.Module):
         h, hc = self.lstm(z, hc)
         return self.head(h), hc
 
-    def loss(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def loss(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, kernel: str = "python"
+             ) -> torch.Tensor:
         """Mean per-step loss over the valid steps: NLL (MDN) or MSE averaged over dims (deterministic).
 
-        raw (B, T, out), target (B, T, D) normalised next states, mask (B, T) bool.
+        raw (B, T, out), target (B, T, D) normalised next states, mask (B, T) bool. kernel (TrainConfig.step_kernel):
+        "cpp" computes the NLL with the fused C++ op where it applies (stm.mdn_fused), "python" with stm.mdn.
         """
         if self.is_mdn:
-            per_step = mdn.mixture_nll(*self.mixture(raw), target)
+            if kernel == "cpp":
+                per_step = mdn_fused.mixture_nll(raw, target, self.config.mixtures, self.config.sigma_min)
+            else:
+                per_step = mdn.mixture_nll(*self.mixture(raw), target)
         else:
             per_step = (raw - target).square().mean(-1)
         m = mask.to(per_step.dtype)

@@ -16,7 +16,7 @@ import copy
 import torch
 from torch import nn
 
-from stm import mdn
+from stm import mdn, mdn_fused
 from stm.model import STM
 
 
@@ -125,10 +125,14 @@ class PackView:
     def mixture(self, raw: torch.Tensor):
         return mdn.split_params(raw, self.config.mixtures, self.dim, self.config.sigma_min)
 
-    def losses(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """(K,) mean per-step loss of each model over its valid steps (STM.loss per model)."""
+    def losses(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, kernel: str = "python"
+               ) -> torch.Tensor:
+        """(K,) mean per-step loss of each model over its valid steps (STM.loss per model, `kernel` as there)."""
         if self.is_mdn:
-            per_step = mdn.mixture_nll(*self.mixture(raw), target)
+            if kernel == "cpp":
+                per_step = mdn_fused.mixture_nll(raw, target, self.config.mixtures, self.config.sigma_min)
+            else:
+                per_step = mdn.mixture_nll(*self.mixture(raw), target)
         else:
             per_step = (raw - target).square().mean(-1)
         m = mask.to(per_step.dtype)

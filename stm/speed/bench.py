@@ -97,7 +97,7 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK)
         def step():
             view = pack.view()
             raw = unroll(view, states, q, psi, steps, task, cfg, kin, gens, burn)
-            losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask)
+            losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask, cfg.step_kernel)
             for p in params:
                 p.grad = None
             losses.sum().backward()

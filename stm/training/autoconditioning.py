@@ -177,4 +177,4 @@ def batch_loss(model: STM, batch, task, cfg: TrainConfig, kin, generator: torch.
                ) -> torch.Tensor:
     """The training loss of one STM on a batch (stm.training.batches.Batch) under cfg's schedule."""
     raw = unroll_model(model, batch, task, cfg, kin, generator)
-    return model.loss(raw, model.normalize(batch.states[:, 1:]), batch.mask)
+    return model.loss(raw, model.normalize(batch.states[:, 1:]), batch.mask, cfg.step_kernel)

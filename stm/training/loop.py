@@ -281,7 +281,7 @@ class _PackRun:
             batch = batch.to(self.device)
             raw = unroll(view, batch.states, batch.q, batch.psi, steps, self.task, cfg, self.kin,
                          [seeds[k].gen for k in ks], batch.burn)
-            group = view.losses(raw, view.normalize(batch.states[:, :, 1:]), batch.mask)
+            group = view.losses(raw, view.normalize(batch.states[:, :, 1:]), batch.mask, cfg.step_kernel)
             finite = torch.isfinite(group.detach())
             for j, k in enumerate(ks):
                 losses[k] = group[j].item()
@@ -304,7 +304,7 @@ class _PackRun:
                 cfg = dataclasses.replace(seeds[ks[0]].cfg, u=u, v=v)
                 raw = unroll(view, b.states, b.q, b.psi, [b.mask.shape[-1]] * len(ks), self.task, cfg, self.kin,
                              [None] * len(ks))
-                out.append(view.losses(raw, view.normalize(b.states[:, :, 1:]), b.mask))
+                out.append(view.losses(raw, view.normalize(b.states[:, :, 1:]), b.mask, cfg.step_kernel))
             sum(g.sum() for g in out).backward()
             return out
 
