@@ -96,9 +96,9 @@ class _Sequence(torch.autograd.Function):
     the per-layer h, c after the last step. The inputs get no gradient (ground truth)."""
 
     @staticmethod
-    def forward(ctx, layers: int, x, *hc_wb):
+    def forward(ctx, layers: int, recurrent, x, *hc_wb):
         h, c, wb = list(hc_wb[:layers]), list(hc_wb[layers: 2 * layers]), hc_wb[2 * layers:]
-        out, h, c, seq = self_fed_extension().sequence_forward(x, h, c, list(wb[0::2]), list(wb[1::2]))
+        out, h, c, seq = self_fed_extension().sequence_forward(x, h, c, list(wb[0::2]), list(wb[1::2]), *recurrent)
         ctx.seq = seq
         ctx.set_materialize_grads(False)
         return (out, *h, *c)
@@ -109,7 +109,7 @@ class _Sequence(torch.autograd.Function):
         L = len(g_hc) // 2
         dh, dc, dw, db = self_fed_extension().sequence_backward(ctx.seq, g_out, list(g_hc[:L]), list(g_hc[L:]))
         ctx.seq = None
-        return (None, None, *dh, *dc, *_interleave(dw, db))
+        return (None, None, None, *dh, *dc, *_interleave(dw, db))
 
 
 class CppSteps:
@@ -120,6 +120,18 @@ class CppSteps:
         self.consts, self.stepper, self.psi, self.offset = consts, stepper, psi, offset
         self.w_fb, self.b_fb = w_fb, b_fb
         self.layers = stepper.layers
+        self._recurrent: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+
+    def recurrent(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Per layer the recurrent rows of w (K, H, 4H) and their transpose (K, 4H, H), contiguous: copied once per
+        unroll for all its ground-truth chunks (the weights are transposed views; the gradients are the chunks')."""
+        if self._recurrent is None:
+            with torch.no_grad():
+                ws = [w.detach() for w in self.stepper.wb[0::2]]
+                H = ws[0].shape[-1] // 4
+                self._recurrent = ([w[:, -H:].contiguous() for w in ws],
+                                   [w[:, -H:].transpose(1, 2).contiguous() for w in ws])
+        return self._recurrent
 
     def _split(self, out):
         L = self.layers
@@ -128,7 +140,7 @@ class CppSteps:
     def known(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]):
         """Centred known inputs (K, B, n, D) from per-layer h, c -> (top hidden states (K, B, n, H), h, c)."""
         st = self.stepper
-        return self._split(_Sequence.apply(self.layers, x, *h, *c, *st.wb))
+        return self._split(_Sequence.apply(self.layers, self.recurrent(), x, *h, *c, *st.wb))
 
     def self_fed(self, h: list[torch.Tensor], c: list[torch.Tensor], q0: torch.Tensor, t: int, n: int):
         """n self-fed steps from input step t, q (K, B, 7) before them -> (top hidden states (K, B, n, H), h, c)."""

@@ -178,9 +178,11 @@ Tensor stack_backward(TensorList& gh, TensorList& gc, const TensorList& ws, cons
 
 
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
-    Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs) {
+    Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h_in,
+    const TensorList& w_hT) {
   auto seq = std::make_shared<Sequence>();
   seq->ws = ws;
+  seq->w_hT = w_hT;
   const int64_t K = x.size(0), B = x.size(1), n = x.size(2), H = h[0].size(-1);
   for (size_t k = 0; k < h.size(); ++k) {
     const int64_t I = x.size(3);
@@ -188,7 +190,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_f
     lay.x = x;
     lay.h0 = h[k];
     auto w_x = ws[k].narrow(1, 0, I);
-    auto w_h = ws[k].narrow(1, I, H).contiguous();
+    auto w_h = w_h_in.empty() ? ws[k].narrow(1, I, H).contiguous() : w_h_in[k];
     auto proj = at::baddbmm(bs[k], x.reshape({K, B * n, I}), w_x).view({K, B, n, 4 * H});
     Tensor hk = h[k], ck = c[k];
     TensorList hs;
@@ -224,7 +226,7 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const auto& lay = seq->layers[k];
     const int64_t K = lay.x.size(0), B = lay.x.size(1), n = lay.x.size(2), I = lay.x.size(3);
     const int64_t H = lay.h0.size(-1);
-    auto w_hT = seq->ws[k].narrow(1, I, H).transpose(1, 2).contiguous();
+    auto w_hT = seq->w_hT.empty() ? seq->ws[k].narrow(1, I, H).transpose(1, 2).contiguous() : seq->w_hT[k];
     Tensor dh_rec = g_h[k].has_value() ? *g_h[k] : at::zeros_like(lay.h0);
     Tensor dc = g_c[k].has_value() ? *g_c[k] : at::zeros_like(lay.h0);
     TensorList dgs(n);

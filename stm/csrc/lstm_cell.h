@@ -29,7 +29,7 @@ struct SeqLayer {
 };
 
 struct Sequence {
-  TensorList ws;
+  TensorList ws, w_hT;  // w_hT: each layer's recurrent weights transposed, contiguous (K, 4H, H)
   std::vector<SeqLayer> layers;
 };
 
@@ -38,8 +38,12 @@ Tensor stack_forward(Tensor inp, TensorList& h, TensorList& c, const TensorList&
                      std::vector<Layer>& saved);
 Tensor stack_backward(TensorList& gh, TensorList& gc, const TensorList& ws, const std::vector<Layer>& saved,
                       bool need_x, TensorList& dgs);
+// w_h, w_hT: per layer the recurrent rows of w, contiguous (K, H, 4H), and transposed, contiguous (K, 4H, H),
+// made once per unroll by the caller (the weights are views whose rows a copy must gather: per call, one copy each
+// per layer and chunk); empty lists: made here.
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
-    Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs);
+    Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h,
+    const TensorList& w_hT);
 std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c);

@@ -6,8 +6,9 @@ One training iteration = forward, loss, backward, Adam step, as stm.training.loo
 of one), on a batch at the paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
 reacher (3x64, 3 Gaussians, batch 32, 70 steps), with the task's state size.
 Timed in the same run, interleaved round by round (the machine is shared, so medians of interleaved rounds
-give fair ratios): teacher forcing (tf), auto-conditioning with u = v = 2 and u = v = 5 (u = v = 5 also
-with the C++ self-fed segment, stm.self_fed: *_cpp), and a plain reference
+give fair ratios): teacher forcing (tf), auto-conditioning with u = v = 2 and u = v = 5 (tf and u = v = 5 also
+with step_kernel "cpp": the C++ self-fed segment, stm.self_fed, and the fused NLL, stm.mdn_fused: *_cpp), and a
+plain reference
 (nn.LSTM + linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three schedules
 for a pack of K = 3 models trained together (stm.packed): packed_speedup_* = (K x one model's ms/iter) / (the
 pack's ms/iter), packed_speedup_ac the lower of the two auto-conditioned schedules';
@@ -109,7 +110,8 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK)
 
 
 # timed with their matrix-product floors
-FLOOR_CASES = ("tf", "ac_u5v5", "ac_u5v5_cpp", "packed_tf", "packed_ac_u5v5", "packed_ac_u5v5_cpp")
+FLOOR_CASES = ("tf", "tf_cpp", "ac_u5v5", "ac_u5v5_cpp", "packed_tf", "packed_tf_cpp", "packed_ac_u5v5",
+               "packed_ac_u5v5_cpp")
 BF16_CASES = tuple(k for k in FLOOR_CASES if not k.endswith("_cpp"))  # the C++ steps take float32 products only
 MATMULS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm"}
 
@@ -165,8 +167,10 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         torch.nn.utils.clip_grad_norm_(plain.parameters(), 1.0)  # like for like: the STM step clips too
         plain_opt.step()
 
-    schedules = {"tf": TrainConfig(v=0), "ac_u2v2": TrainConfig(u=2, v=2), "ac_u5v5": TrainConfig(u=5, v=5),
-                 "ac_u5v5_cpp": TrainConfig(u=5, v=5, step_kernel="cpp")}  # the C++ self-fed segment (stm.self_fed)
+    # *_cpp: step_kernel "cpp", the C++ self-fed segment (stm.self_fed) and the fused NLL (stm.mdn_fused)
+    schedules = {"tf": TrainConfig(v=0), "tf_cpp": TrainConfig(v=0, step_kernel="cpp"),
+                 "ac_u2v2": TrainConfig(u=2, v=2), "ac_u5v5": TrainConfig(u=5, v=5),
+                 "ac_u5v5_cpp": TrainConfig(u=5, v=5, step_kernel="cpp")}
     packed = _packed_step(task, stats, model.config, batch, kin)
     window, burn_in = WINDOW
     windows = data.windows(torch.arange(spec["batch"]), window, burn_in, torch.Generator().manual_seed(0))
@@ -204,13 +208,15 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
         # TrainConfig.matmul_dtype "bfloat16": the same iteration's ms over float32's, timed in the same rounds
         "bf16_over_fp32": {k: round(med[f"bf16_{k}"] / med[k], 3) for k in BF16_CASES},
-        "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "ac_u5v5", "ac_u5v5_cpp")},
+        "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "tf_cpp", "ac_u5v5", "ac_u5v5_cpp")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
         # step_kernel "cpp" (python where the extension cannot be built: cpp_kernel says which ran)
         "cpp_kernel": cpp_ext.self_fed_extension() is not None, "cpp_load_seconds": cpp_ext.load_seconds,
         "ratio_ac_u5v5_cpp_over_tf": round(med["ac_u5v5_cpp"] / med["tf"], 3),
         "packed_ratio_ac_u5v5_cpp_over_tf": round(med["packed_ac_u5v5_cpp"] / med["packed_tf"], 3),
+        "speedup_cpp_tf": round(med["tf"] / med["tf_cpp"], 3),
+        "speedup_cpp_packed_tf": round(med["packed_tf"] / med["packed_tf_cpp"], 3),
         "speedup_cpp_ac_u5v5": round(med["ac_u5v5"] / med["ac_u5v5_cpp"], 3),
         "speedup_cpp_packed_ac_u5v5": round(med["packed_ac_u5v5"] / med["packed_ac_u5v5_cpp"], 3),
         "ratio_tf_over_plain": round(med["tf"] / med["plain"], 3),
