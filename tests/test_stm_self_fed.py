@@ -78,6 +78,7 @@ CASES = {  # (model config overrides, train config, models per pack)
     "no_gripper_layers_2": ({"num_layers": 2}, TrainConfig(u=3, v=3), 1),
     "mixture_mean_falls_back": ({}, TrainConfig(u=1, v=3, feedback="mixture_mean"), 1),
     "sample_falls_back": ({}, TrainConfig(u=2, v=3, feedback="sample", temperature=0.5), 1),
+    "bf16_products_falls_back": ({}, TrainConfig(u=2, v=2, matmul_dtype="bfloat16"), 1),  # the fused NLL alone
     "teacher_forced": ({}, TrainConfig(v=0), 1),  # no self-fed steps: the fused NLL alone
     "teacher_forced_packed": ({}, TrainConfig(v=0), 3),
 }
