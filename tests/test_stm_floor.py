@@ -38,3 +38,16 @@ def test_lstm_layers_recorded_as_the_products_of_an_unfused_layer(layers):
     forward = sum(T * B * 4 * H * (i + H) for i in [I] + [H] * (layers - 1))
     assert _macs(calls) == 3 * forward
     replayer(calls)()
+
+
+def test_the_warm_replay_shares_one_operand_per_layout():
+    x, w = torch.randn(8, 8, requires_grad=True), torch.randn(8, 8, requires_grad=True)
+    calls = record_matmuls(lambda: (x @ w @ w).sum().backward())
+    distinct = {}
+    for warm in (False, True):
+        replay = replayer(calls, warm=warm)
+        replay()
+        distinct[warm] = len({id(a) for _op, args, _ in replay.calls for a in args if isinstance(a, torch.Tensor)})
+    layouts = {(tuple(a.shape), a.stride) for _op, args, _ in calls for a in args if hasattr(a, "stride")}
+    assert distinct[False] == sum(len([a for a in args if hasattr(a, "stride")]) for _op, args, _ in calls)
+    assert distinct[True] == len(layouts) < distinct[False]

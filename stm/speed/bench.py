@@ -19,7 +19,8 @@ of K could then gain (Amdahl: products cost K-fold, the rest once); bf16_over_fp
 iterations, single and packed, with bf16 matrix products (TrainConfig.matmul_dtype) over float32, timed in the
 same rounds. The floor (stm.speed.floor): the matrix products of one tf and one a.c. u = v = 5 iteration,
 single and packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms
-per model-iteration / its fp32 floor. The tip kinematics of the fed-back state (stm.fk) against
+per model-iteration / its fp32 floor; floor_ratio_warm the same over the warm replay (operands in cache: a
+lower bound under the floor). The tip kinematics of the fed-back state (stm.fk) against
 pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
 3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an
 evaluation cell's).
@@ -186,6 +187,7 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
     for k, calls in matmuls.items():  # the floors, timed in the same rounds
         cases[f"floor_fp32_{k}"], cases[f"floor_bf16_{k}"] = replayer(calls, device=_device), \
             replayer(calls, torch.bfloat16, _device)
+        cases[f"floor_warm_{k}"] = replayer(calls, device=_device, warm=True)
     times: dict[str, list[float]] = {k: [] for k in cases}
     for _ in range(rounds):  # interleaved, so a load change hits every case alike
         for k, fn in cases.items():
@@ -200,9 +202,11 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         # the floor: the same iteration's matrix products replayed alone (stm.speed.floor), per model-iteration
         # (a pack's divided by its K); floor_ratio = ms per model-iteration / the fp32 floor
         "ms_per_model_iter": {k: round(per_model[k] * 1e3, 2) for k in FLOOR_CASES},
-        "floor_ms_per_model_iter": {k: {dt: round(per_model[f"floor_{dt}_{k}"] * 1e3, 2) for dt in ("fp32", "bf16")}
-                                    for k in FLOOR_CASES},
+        "floor_ms_per_model_iter": {k: {dt: round(per_model[f"floor_{dt}_{k}"] * 1e3, 2)
+                                        for dt in ("fp32", "bf16", "warm")} for k in FLOOR_CASES},
         "floor_ratio": {k: round(med[k] / med[f"floor_fp32_{k}"], 3) for k in FLOOR_CASES},
+        # against the warm replay (fp32, one operand per layout, in cache): the products at their best
+        "floor_ratio_warm": {k: round(med[k] / med[f"floor_warm_{k}"], 3) for k in FLOOR_CASES},
         "bf16_floor_over_fp32_floor": {k: round(med[f"floor_bf16_{k}"] / med[f"floor_fp32_{k}"], 3)
                                        for k in FLOOR_CASES},
         "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
@@ -361,9 +365,11 @@ def main(argv: list[str] | None = None) -> dict:
                   f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
                   f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f} | windows of {r['window']} "
                   f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
-            print(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16: "
-                  + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}" for k, v in r["floor_ms_per_model_iter"].items())
+            print(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16/warm: "
+                  + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}/{v['warm']:.1f}"
+                              for k, v in r["floor_ms_per_model_iter"].items())
                   + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
+                  + " | warm " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio_warm"].items())
                   + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
         if "fk" in result:
             fk = result["fk"]

@@ -5,6 +5,10 @@ gradients); everything else is per-op overhead and small elementwise maths. Reco
 the products one iteration calls (op, shapes, strides, dtypes) and replaying them on
 fresh tensors, without anything in between, times what the iteration could cost if
 nothing else did: the floor. The replay in bfloat16 is the floor with bf16 products.
+Fresh tensors (one per argument of each call, as the iteration's saved activations are)
+come cold from memory; the warm replay (`warm=True`) reuses one tensor per layout, as an
+iteration does where a product reads what the last op just wrote: products at their
+best, a lower bound under the floor (measured about 0.75-0.8x of it at the pick-and-place size).
 
 A fused LSTM layer (oneDNN's, behind nn.LSTM on the CPU; its input is time-major) does
 its products inside one op; it is recorded as the products an unfused layer needs: the
@@ -80,15 +84,28 @@ def record_matmuls(fn) -> list[tuple]:
     return rec.calls
 
 
-def replayer(calls: list[tuple], dtype: torch.dtype | None = None, device: torch.device | None = None):
+def replayer(calls: list[tuple], dtype: torch.dtype | None = None, device: torch.device | None = None,
+             warm: bool = False):
     """A function that calls the recorded products again, in order, on fresh random tensors (in `dtype` where
-    given: every floating-point argument cast to it; on `device`, the CPU by default). On CUDA the fused LSTM's
-    products (cuDNN's, not oneDNN's) are not recorded: the floor of a teacher-forced iteration leaves them out."""
-    made = [(func, *tree_map(lambda a: a.make(dtype, device) if isinstance(a, _Spec) else a, (args, kwargs)))
+    given: every floating-point argument cast to it; on `device`, the CPU by default), or with `warm` on one
+    tensor per layout, reused by every call (in cache). On CUDA the fused LSTM's products (cuDNN's, not
+    oneDNN's) are not recorded: the floor of a teacher-forced iteration leaves them out."""
+    shared: dict[tuple, torch.Tensor] = {}
+
+    def operand(spec: _Spec) -> torch.Tensor:
+        if not warm:
+            return spec.make(dtype, device)
+        key = (spec.shape, spec.stride, spec.dtype)
+        if key not in shared:
+            shared[key] = spec.make(dtype, device)
+        return shared[key]
+
+    made = [(func, *tree_map(lambda a: operand(a) if isinstance(a, _Spec) else a, (args, kwargs)))
             for func, args, kwargs in calls]
 
     def replay():
         for func, args, kwargs in made:
             func(*args, **kwargs)
 
+    replay.calls = made  # what it replays, operands included
     return replay
