@@ -133,6 +133,15 @@ class StudyConfig:
         d = self.to_dict()
         if not d["eval"].get("mode_repeats"):  # absent when 0, as in Cell.eval_dict: earlier studies keep their hash
             d["eval"].pop("mode_repeats", None)
+        for key in TrainConfig.UNHASHED:  # a route, as in Cell.resolved: the same study on either
+            d["train"].pop(key, None)
+            for task, sections in list(d["per_task"].items()):
+                if key in sections.get("train", {}):  # and the sections it leaves empty, as if never written
+                    del sections["train"][key]
+                    if not sections["train"]:
+                        del sections["train"]
+                    if not any(sections.values()):
+                        del d["per_task"][task]
         return config_hash({k: d[k] for k in ("model", "train", "per_task", "eval")})
 
     def resolved_study_name(self) -> str:

@@ -29,6 +29,10 @@ def test_the_step_kernel_is_not_hashed_but_other_settings_are():
     assert {c.key: c.config_hash for c in cpp} == base
     assert all(c.train.step_kernel == "cpp" for c in cpp)
     assert "step_kernel" not in TrainConfig(step_kernel="cpp").hashed_dict()
+    for override in ("train.step_kernel=cpp", "per_task.reacher.train.step_kernel=cpp"):
+        cfg = load_profile("smoke", [override])
+        assert cfg.study_hash() == load_profile("smoke").study_hash()
+        assert cfg.resolved_study_name() == load_profile("smoke").resolved_study_name()  # a re-run continues it
     bf16 = build_cells(load_profile("smoke", ["train.matmul_dtype=bfloat16"]))
     assert {c.key: c.config_hash for c in bf16} != base  # a different result: hashed
 
