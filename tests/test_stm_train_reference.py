@@ -88,3 +88,21 @@ def test_a_checkpoint_of_the_old_loop_resumes_to_the_reference(reference, toy, t
     _assert_matches(alone, generate(alone.model, task, episodes, seed=3), ref["single"][1])
     packed = train_packed(model_cfg, cfgs, task, demos, checkpoint_paths=[None, packed_path])
     _assert_matches(packed[1], generate(packed[1].model, task, episodes, seed=3), ref["packed"][1])
+
+
+def test_a_checkpoint_resumes_on_the_other_step_kernel_but_not_with_other_settings(reference, toy, tmp_path):
+    """The step kernel is a route (TrainConfig.UNHASHED): a run checkpointed on the Python steps goes on with
+    step_kernel "cpp" to the same weights (within the tolerances above); a changed setting is still refused."""
+    import dataclasses
+
+    task, demos, _episodes = toy
+    ckpt = reference["checkpoint_ac-lstm-mdn_seed1_iter4"]
+    ref = reference["cases"]["ac-lstm-mdn"]
+    model_cfg = ModelConfig.from_dict(ckpt["model_config"])
+    cfg = TrainConfig.from_dict(ref["train_configs"][1])
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(ckpt, path)
+    with pytest.raises(ValueError, match=r"other settings \(lr\)"):
+        train(model_cfg, dataclasses.replace(cfg, lr=cfg.lr * 2), task, demos, checkpoint_path=path)
+    resumed = train(model_cfg, dataclasses.replace(cfg, step_kernel="cpp"), task, demos, checkpoint_path=path)
+    assert (_flat(resumed.model) - ref["single"][1]["weights"]).abs().max().item() < WEIGHT_TOL

@@ -85,7 +85,8 @@ def checkpoint_payload(model, opt, model_cfg, train_cfg, task, iteration, gen, h
     }
 
 
-_RESUME_FREE = {"iters", "checkpoint_every", "log_every", "val_every", "max_seconds"}  # may change between runs
+# may change between runs: budgets and cadences, and the routes (TrainConfig.UNHASHED: an equivalent kernel)
+_RESUME_FREE = {"iters", "checkpoint_every", "log_every", "val_every", "max_seconds", *TrainConfig.UNHASHED}
 
 
 def check_resumable(ckpt: dict, model_cfg: ModelConfig, train_cfg: TrainConfig, task: Task, path: Path) -> None:
