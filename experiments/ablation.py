@@ -254,16 +254,20 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
     except BrokenProcessPool as exc:
         done = {r.run_id for r in outcome.results} | {run_id for _, run_id in held}
         client = Client(uri)
-        for cell, run_id in [pair for unit in units for pair in unit]:
-            if run_id not in done:
-                text = f"worker process died ({exc}); re-run the study to resume this cell"
-                try:
-                    set_tags(client, run_id, {"error": text})
-                    client.set_terminated(run_id, "FAILED")
-                except Exception:
-                    log.exception("could not mark run %s FAILED", run_id)
-                _record(outcome, cell, run_id, Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=text)),
-                        bar, total, interactive, held)
+        pending = [pair for unit in units for pair in unit if pair[1] not in done]
+        if any(client.get_run(run_id).info.status == "KILLED" for _, run_id in pending):
+            # a worker was interrupted and recorded it (SIGINT reached the workers, not this process): the study
+            # was stopped, not broken; the caller marks the rest KILLED as for a Ctrl-C here
+            raise KeyboardInterrupt from exc
+        for cell, run_id in pending:
+            text = f"worker process died ({exc}); re-run the study to resume this cell"
+            try:
+                set_tags(client, run_id, {"error": text})
+                client.set_terminated(run_id, "FAILED")
+            except Exception:
+                log.exception("could not mark run %s FAILED", run_id)
+            _record(outcome, cell, run_id, Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=text)),
+                    bar, total, interactive, held)
 
 
 def success_markdown(client: Client, experiment_id: str, parent_id: str) -> str:

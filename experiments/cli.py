@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 
 from experiments.runtime.processes import (
@@ -124,6 +125,10 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # started in the background by a shell (`cmd &`), which ignores SIGINT for it: `kill -INT` stops a
+        # study then as Ctrl-C does (each cell checkpointed and KILLED), not only its workers
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     args = build_parser().parse_args(argv)
     level = logging.DEBUG if getattr(args, "verbose", False) else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
