@@ -18,10 +18,10 @@ import logging
 import os
 import sys
 import tempfile
-import time
 from pathlib import Path
+from unittest.mock import patch
 
-from experiments.runtime.processes import training_threads
+from experiments.runtime.processes import training_threads, usable_cores
 from experiments.study_config import StudyConfig, load_profile
 
 log = logging.getLogger(__name__)
@@ -58,18 +58,10 @@ def run_arm(cfg: StudyConfig) -> dict:
 
     cells = build_cells(cfg)
     model_iterations = sum(cell.train.iters for cell in cells)
-    previous = os.environ.get("MLFLOW_TRACKING_URI")
-    with tempfile.TemporaryDirectory(prefix="acrmdn-scaling-") as store:
-        os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{store}/mlflow.db"
-        try:
-            start = time.perf_counter()
-            outcome = run_study(cfg, progress=False)
-            seconds = time.perf_counter() - start
-        finally:
-            if previous is None:
-                os.environ.pop("MLFLOW_TRACKING_URI", None)
-            else:
-                os.environ["MLFLOW_TRACKING_URI"] = previous
+    with tempfile.TemporaryDirectory(prefix="acrmdn-scaling-") as store, \
+            patch.dict(os.environ, {"MLFLOW_TRACKING_URI": f"sqlite:///{store}/mlflow.db"}):
+        outcome = run_study(cfg, progress=False)
+    seconds = outcome.seconds
     if outcome.failures:
         raise RuntimeError(f"{len(outcome.failures)} cell(s) failed with {cfg.workers} worker(s): "
                            f"{outcome.failures[0].error}")
@@ -88,8 +80,7 @@ def measure(args: argparse.Namespace) -> dict:
     for arm in arms:
         arm["speedup"] = round(arm["model_iterations_per_s"] / base, 3)
     return {"profile": args.profile, "tasks": args.tasks, "variants": args.variants, "seeds": args.seeds,
-            "iters": args.iters, "threads_per_process": training_threads(), "cpus": len(os.sched_getaffinity(0))
-            if hasattr(os, "sched_getaffinity") else os.cpu_count(), "load_before": os.getloadavg()[0],
+            "iters": args.iters, "threads_per_process": training_threads(), "cpus": usable_cores(), "load_before": os.getloadavg()[0],
             "arms": arms}
 
 

@@ -54,6 +54,11 @@ def default_workers() -> int:
         if not raw.isdigit() or int(raw) < 1:
             raise ConfigError(f"{WORKERS_ENV}={raw!r}: expected a whole number of worker processes >= 1")
         return int(raw)
+    return usable_cores()
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity where the platform tells it)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
