@@ -43,6 +43,7 @@ from stm.training.batches import DemoTensors
 from stm.training.checkpoint import check_resumable, checkpoint_payload, load_checkpoint, save_checkpoint
 from stm.training.cuda_graph import StepGraphs, capturable
 from stm.training.interrupts import whole_step
+from stm.training.subnormals import subnormals_flushed
 from stm.training.validation import Validation
 
 log = logging.getLogger(__name__)
@@ -134,7 +135,7 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
                 run.resume(k)
     show = progress and sys.stderr.isatty()
     with tqdm(total=sum(c.iters for c in train_cfgs), initial=sum(s.iteration for s in run.seeds), desc="train",
-              disable=not show) as bar:
+              disable=not show) as bar, subnormals_flushed():
         run.loop(bar)
     return [TrainResult(model=run.pack.extract(k), history=s.history, seconds=run.elapsed(s), iterations=s.iteration,
                         stopped_early=s.stopped_early, checkpoint_path=s.path, failure=s.failure)
