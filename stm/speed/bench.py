@@ -20,7 +20,9 @@ iterations, single and packed, with bf16 matrix products (TrainConfig.matmul_dty
 same rounds. The floor (stm.speed.floor): the matrix products of one tf and one a.c. u = v = 5 iteration,
 single and packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms
 per model-iteration / its fp32 floor; floor_ratio_warm the same over the warm replay (operands in cache: a
-lower bound under the floor). The tip kinematics of the fed-back state (stm.fk) against
+lower bound under the floor). The training iterations run with subnormal floats flushed to zero, as
+stm.training.loop trains; --weights CHECKPOINT also times a pack of a trained checkpoint's copies with them
+flushed and kept (stm.speed.trained: on a peaked mixture head the difference is large). The tip kinematics of the fed-back state (stm.fk) against
 pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
 3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an
 evaluation cell's).
@@ -37,6 +39,7 @@ import json
 import os
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -53,8 +56,10 @@ from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.speed.bench_inputs import BenchTask, PlainMDN, bench_demos
 from stm.speed.floor import record_matmuls, replayer
+from stm.speed.trained import trained_weights_bench
 from stm.training.autoconditioning import unroll
 from stm.training.batches import DemoTensors
+from stm.training.subnormals import subnormals_flushed
 
 SIZES = {  # paper sizes: (hidden, mixtures, batch, steps, gripper)
     "pick-place": dict(hidden=128, mixtures=20, batch=32, steps=170, gripper=True),
@@ -79,14 +84,18 @@ def _time_once(fn, reps: int) -> float:
     return (_clock() - start) / reps
 
 
-def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK):
-    """A training-iteration factory for a pack of k models (each its own seed's init; one model is a pack of one,
-    as stm.training.loop trains it), every model on the same batch: unroll, per-model losses, backward, per-model
-    clipping, Adam."""
+def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK, state: dict | None = None):
+    """A training-iteration factory for a pack of k models (each its own seed's init, or each a copy of the weights
+    `state` (normalisation included); one model is a pack of one, as stm.training.loop trains it), every model on
+    the same batch: unroll, per-model losses, backward, per-model clipping, Adam."""
     models = []
     for seed in range(k):
         torch.manual_seed(seed)
-        models.append(STM(model_cfg, task.layout, *stats))
+        if state is None:
+            models.append(STM(model_cfg, task.layout, *stats))
+        else:
+            models.append(STM(model_cfg, task.layout))
+            models[-1].load_state_dict(state)
     pack, batch, kin = PackedSTM.from_models(models).to(_device), batch.to(_device), kin.to(_device)
     params = list(pack.stacked)
     opt, clips, active = PackedAdam(params, [1e-4] * k), torch.ones(k), torch.arange(k)
@@ -329,6 +338,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--clock", choices=list(CLOCKS), default="cpu",
                     help="cpu: this process's CPU time (default; steady on a shared machine); wall: elapsed time "
                          "(always, on a GPU)")
+    ap.add_argument("--weights", type=Path, default=None, metavar="CHECKPOINT",
+                    help="also time the training iteration on this training checkpoint's weights, subnormals "
+                         "flushed and kept (stm.speed.trained)")
     ap.add_argument("--device", default="cpu", help="auto, cpu (default), cuda or cuda:N: where the training "
                     "iterations, their floors and the rollouts run (the tip kinematics' comparison: the CPU)")
     args = ap.parse_args(argv)
@@ -346,7 +358,11 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
               "clock": args.clock, "device": str(_device),
               "load_average_before": [round(x, 2) for x in load_before],
-              "training": [training_bench(s, args.rounds, args.reps) for s in args.sizes]}
+              "training": []}
+    with subnormals_flushed():  # as stm.training.loop trains
+        result["training"] = [training_bench(s, args.rounds, args.reps) for s in args.sizes]
+    if args.weights is not None:
+        result["trained_weights"] = trained_weights_bench(args.weights, args.rounds, args.reps)
     if not args.no_fk:
         result["fk"] = fk_bench(args.rounds)
     if not args.no_rollouts:
@@ -371,6 +387,12 @@ def main(argv: list[str] | None = None) -> dict:
                   + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
                   + " | warm " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio_warm"].items())
                   + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
+        if "trained_weights" in result:
+            tw = result["trained_weights"]
+            print(f"{tw['checkpoint']} ({tw['task']}, iteration {tw['iteration']}, {tw['head']} head, u={tw['u']} "
+                  f"v={tw['v']}, {tw['step_kernel']}): pack of {tw['packed_k']} "
+                  f"{tw['ms_per_iter']['flushed']:.1f} ms per iteration with subnormals flushed, "
+                  f"{tw['ms_per_iter']['ieee']:.1f} ms kept: x{tw['subnormal_slowdown']:.2f}")
         if "fk" in result:
             fk = result["fk"]
             us, calls = fk["us_per_call"], fk["aten_calls"]

@@ -2,8 +2,8 @@
 
 A mixture head fitted to teacher-forced demonstrations grows sharply peaked: the responsibilities of the far
 components and the gradients through them fall below float32's smallest normal number (1.2e-38), and every
-matrix product that meets them takes the CPU's slow path: a pack of such models trained several times slower
-than the same pack at its initialisation. Values that small are far below anything the loss or the
+matrix product that meets them takes the CPU's slow path (`python -m stm.speed.bench --weights CHECKPOINT` times
+a checkpoint's training iteration with them flushed and kept). Values that small are far below anything the loss or the
 weights resolve, so training flushes them (the CPU's flush-to-zero and denormals-are-zero modes); the rest of the
 process keeps IEEE arithmetic. The modes belong to the calling thread: a training process runs one torch thread
 (experiments.runtime.processes.training_threads).
@@ -25,11 +25,11 @@ def flushing() -> bool:
 
 
 @contextlib.contextmanager
-def subnormals_flushed() -> Iterator[None]:
-    """Subnormals read and written as zero inside the block (where the CPU has the modes: x86 with SSE3),
-    as they were before after it."""
+def subnormals_flushed(flush: bool = True) -> Iterator[None]:
+    """Subnormals read and written as zero inside the block (where the CPU has the modes: x86 with SSE3), or with
+    flush=False kept as IEEE has them; as they were before after it."""
     before = flushing()
-    torch.set_flush_denormal(True)
+    torch.set_flush_denormal(flush)
     try:
         yield
     finally:

@@ -1,0 +1,55 @@
+"""The training iteration on a checkpoint's weights: `python -m stm.speed.bench --weights CHECKPOINT`.
+
+The main bench times freshly initialised models; some costs appear only once a model has trained. A mixture head
+fitted to teacher-forced demonstrations grows sharply peaked, and its gradients fill with subnormal floats, which
+the CPU multiplies on a slow path (stm.training.subnormals). This times a pack of K copies of the checkpoint's
+model on its task's demonstrations, under the schedule and kernel it trained with, with subnormals flushed (as
+stm.training.loop trains) and kept (IEEE), interleaved round by round: subnormal_slowdown = kept / flushed.
+"""
+
+from __future__ import annotations
+
+import statistics
+from pathlib import Path
+
+import torch
+
+from stm.config import ModelConfig, TrainConfig
+from stm.training.batches import DemoTensors
+from stm.training.checkpoint import load_checkpoint
+from stm.training.subnormals import subnormals_flushed
+
+
+def trained_weights_bench(path: Path, rounds: int, reps: int) -> dict:
+    from envs.datasets import load_demos
+    from envs.tasks import get_task
+    from stm.fk import default_tip_kinematics
+    from stm.speed import bench
+
+    ckpt = load_checkpoint(path)
+    model_cfg, train_cfg = ModelConfig.from_dict(ckpt["model_config"]), TrainConfig.from_dict(ckpt["train_config"])
+    task = get_task(ckpt["task"])
+    data = DemoTensors.build(task, load_demos(task, 0))
+    batch = data.batch(torch.arange(min(train_cfg.batch_size, len(data.lengths))))
+    kin = default_tip_kinematics(torch.float32)
+    step = bench._packed_step(task, None, model_cfg, batch, kin, state=ckpt["model"])(train_cfg)
+
+    def mode(flush: bool):
+        def call():
+            with subnormals_flushed(flush):
+                step()
+        return call
+
+    cases = {"flushed": mode(True), "ieee": mode(False)}
+    for fn in cases.values():  # warm-up
+        fn()
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(rounds):
+        for k, fn in cases.items():
+            times[k].append(bench._time_once(fn, reps))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {"checkpoint": Path(path).name, "task": ckpt["task"], "iteration": int(ckpt["iteration"]),
+            "head": model_cfg.head, "u": train_cfg.u, "v": train_cfg.v, "step_kernel": train_cfg.step_kernel,
+            "packed_k": bench.PACK, "batch": int(batch.states.shape[0]), "steps": int(batch.mask.shape[1]),
+            "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items()},
+            "subnormal_slowdown": round(med["ieee"] / med["flushed"], 3)}
