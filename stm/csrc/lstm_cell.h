@@ -1,8 +1,11 @@
-// The LSTM stack of the C++ steps (stm/csrc/self_fed.cpp): one step of all layers, forward and backward, and
+// The LSTM stack of the C++ steps (stm/csrc/self_fed.cpp): the cell's forward and backward on step blocks, and
 // runs of known inputs layer by layer, on ATen products and the cell's elementwise maths in plain loops.
 //
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate columns
 // i, f, o, 2g (stm.lstm_step.gate_order); b (K, 1, 4H).
+//
+// A step block is a (K, B, X) tensor whose last dimension is contiguous; its K and B strides are free, so that a
+// step's rows can be read from and written into a buffer of all the run's steps (a slice of it) without copies.
 #pragma once
 
 #include <ATen/ATen.h>
@@ -16,16 +19,23 @@ namespace stm_cpp {
 using at::Tensor;
 using TensorList = std::vector<Tensor>;
 
-struct Layer {
-  Tensor xh, gd, o_dt, sig;  // the step's [x, h], local derivatives (stm.lstm_step._stack_forward), gate sigmoids
-};
+// One cell step forward from the gate sigmoids sig (K, B, 4H): c_new, h (and a copy of h in h2 where defined),
+// the saved gd, o_dt; tc is scratch (tanh(c_new)). All are step blocks, written in place.
+void cell_forward(const Tensor& sig, const Tensor& c, const Tensor& c_new, const Tensor& tc, const Tensor& gd,
+                  const Tensor& o_dt, const Tensor& h, const Tensor& h2);
+// One cell step backward: d gates and the gradient of the previous cell state, from dh = dh_a (+ dh_b where
+// defined) and gc (undefined: none). Step blocks, the outputs written in place.
+void cell_backward(const Tensor& sig, const Tensor& gd, const Tensor& o_dt, const Tensor& dh_a, const Tensor& dh_b,
+                   const Tensor& gc, const Tensor& dgates, const Tensor& grad_c);
+// t where its last dimension is contiguous, else a contiguous copy (gradients may come expanded).
+Tensor rows_ready(const Tensor& t);
 
 // Known inputs (ground truth) through the stack, n steps: layer by layer, the input projection of all steps as one
 // product and only the recurrent part stepped (stm.packed_lstm_step._LayerSeq, op for op). For short runs between
 // self-fed segments this beats oneDNN's fused layer, whose set-up costs more than its five steps.
 struct SeqLayer {
-  Tensor x, h0, out;             // input (K, B, n, I), initial h, outputs (K, B, n, H)
-  TensorList gd, o_dt, sig;      // per step
+  Tensor x, h0, out;  // input (K, B, n, I), initial h, outputs (K, B, n, H)
+  Tensor sig, gd, o_dt;  // per step: (n, K, B, 4H), (n, K, B, 4H), (n, K, B, H)
 };
 
 struct Sequence {
@@ -34,10 +44,6 @@ struct Sequence {
 };
 
 void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db);
-Tensor stack_forward(Tensor inp, TensorList& h, TensorList& c, const TensorList& ws, const TensorList& bs,
-                     std::vector<Layer>& saved);
-Tensor stack_backward(TensorList& gh, TensorList& gc, const TensorList& ws, const std::vector<Layer>& saved,
-                      bool need_x, TensorList& dgs);
 // w_h, w_hT: per layer the recurrent rows of w, contiguous (K, H, 4H), and transposed, contiguous (K, 4H, H),
 // made once per unroll by the caller (the weights are views whose rows a copy must gather: per call, one copy each
 // per layer and chunk); empty lists: made here.

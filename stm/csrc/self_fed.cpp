@@ -6,8 +6,11 @@
 // several microseconds of binding and autograd bookkeeping, more than its arithmetic at these sizes. Here the
 // same ATen calls (the LSTM cell's elementwise ones: the same arithmetic in loops) run in the same order on the
 // same shapes, so the forward is that of the Python path (stm.lstm_step, stm.fk, stm.model.feedback_state) and
-// the backward differs only in the order in which a few gradient contributions are summed. The weight gradient is not computed per step: one product per layer and
-// chunk of steps (`weight_gradient`). The LSTM stack itself: lstm_cell.h.
+// the backward differs only in the order in which a few gradient contributions are summed. The weight gradient is
+// not computed per step: one product per layer and chunk of steps (`weight_gradient`). What the steps write goes
+// into buffers of the whole segment (SegLayer), the products' outputs included (out= calls): no per-step
+// allocations, and the weight gradients' rows are already in place, not gathered by a cat at the end.
+// The LSTM stack itself: lstm_cell.h.
 //
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate
 // columns i, f, o, 2g; b (K, 1, 4H); the feedback head w_fb (K, H, O), b_fb (K, 1, O).
@@ -19,10 +22,10 @@
 #include "lstm_cell.h"
 #include "mdn_nll.h"
 
-using stm_cpp::Layer;
+using stm_cpp::cell_backward;
+using stm_cpp::cell_forward;
+using stm_cpp::rows_ready;
 using stm_cpp::Sequence;
-using stm_cpp::stack_backward;
-using stm_cpp::stack_forward;
 using stm_cpp::Tensor;
 using stm_cpp::TensorList;
 using stm_cpp::weight_gradient;
@@ -32,12 +35,20 @@ namespace {
 constexpr int64_t JOINTS = 7;
 
 struct Step {
-  std::vector<Layer> layers;
-  Tensor h_top_in;  // the top hidden state the head read
-  Tensor idx;       // the mixture component fed back (MDN head)
-  Tensor mask_q;    // where q_prev + dq was within the joint limits (clamp passes the gradient)
-  Tensor mask_g;    // where the gripper prediction was within [0, 1]
-  Tensor jac;       // d tip / d q (N, JOINTS, 3)
+  Tensor idx;     // the mixture component fed back (MDN head)
+  Tensor mask_q;  // where q_prev + dq was within the joint limits (clamp passes the gradient)
+  Tensor mask_g;  // where the gripper prediction was within [0, 1]
+  Tensor jac;     // d tip / d q (N, JOINTS, 3)
+};
+
+// A layer's values over the segment's n steps, in buffers written step by step (lstm_cell.h's step blocks).
+// xh holds the rows of the layer's weight gradient, [x, h] per step, in the order the backward visits the steps
+// (step j at slot n - 1 - j): the product reads them in place, and the top layer's h part is what the feedback
+// head read (the rows of its weight gradient).
+struct SegLayer {
+  Tensor xh;             // (K, n, B, I + H)
+  Tensor sig, gd, o_dt;  // per step (n, K, B, 4H), (n, K, B, 4H), (n, K, B, H)
+  int64_t inputs = 0;    // I
 };
 
 // What the backward needs of one segment's forward; the Python side holds it between the two.
@@ -45,8 +56,10 @@ struct Segment {
   TensorList ws;
   Tensor w_fb;
   std::vector<Step> steps;
+  std::vector<SegLayer> layers;
   int64_t mixtures = 0, dims = 0, phi_start = 0, phi_dim = 0;
   bool gripper = false, free_phi = false, detach = false;
+  int64_t slot(int64_t j) const { return static_cast<int64_t>(steps.size()) - 1 - j; }
 };
 
 // Tip position (N, 3) and Jacobian (N, JOINTS, 3) of q (N, JOINTS): stm.fk._slots with the gradient plan.
@@ -63,6 +76,57 @@ std::pair<Tensor, Tensor> tip_kinematics(const Tensor& q, const TensorList& fk, 
   auto entries = at::mm(mono.view({N * slots, monomials}), coef);
   auto out = at::mm(entries.narrow(1, 0, 12) * entries.narrow(1, 12, 12), row_sums).view({N, slots, 3});
   return {out.select(1, 0), out.narrow(1, 1, slots - 1)};
+}
+
+// The layers' buffers for n steps; each layer's h before the segment into its [x, h] of the first step.
+std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& h, int64_t n) {
+  const int64_t K = h[0].size(0), B = h[0].size(1), H = h[0].size(2);
+  const auto opt = h[0].options();
+  std::vector<SegLayer> layers;
+  for (size_t k = 0; k < ws.size(); ++k) {
+    SegLayer lay;
+    lay.inputs = ws[k].size(1) - H;
+    lay.xh = at::empty({K, n, B, lay.inputs + H}, opt);
+    lay.sig = at::empty({n, K, B, 4 * H}, opt);
+    lay.gd = at::empty({n, K, B, 4 * H}, opt);
+    lay.o_dt = at::empty({n, K, B, H}, opt);
+    lay.xh.select(1, n - 1).narrow(-1, lay.inputs, H).copy_(h[k]);
+    layers.push_back(std::move(lay));
+  }
+  return layers;
+}
+
+// The feedback head's prediction from the top h (stm.packed.PackView.feedback_predictor); for an MDN head the most
+// likely component's mean (stm.mdn.component_mean), its index kept for the backward.
+Tensor feedback_prediction(const Segment& seg, const Tensor& h_top, const Tensor& w_fb, const Tensor& b_fb,
+                           Step& st) {
+  auto out = at::baddbmm(b_fb, h_top, w_fb);
+  const int64_t m = seg.mixtures, dims = seg.dims;
+  if (m == 0) return out;
+  const int64_t K = out.size(0), B = out.size(1);
+  auto mu = out.narrow(-1, m, m * dims).unflatten(-1, {m, dims});
+  st.idx = out.narrow(-1, 0, m).argmax(-1, true);
+  return at::gather(mu, -2, st.idx.unsqueeze(-1).expand({K, B, 1, dims})).squeeze(-2);
+}
+
+// One step of the stack, bottom layer first (stm.lstm_step._stack_forward), on the segment's buffers: each layer's
+// h goes straight into the next layer's [x, h] of this step (the top's into the block) and into its own [x, h]
+// of the next step (after the last step: into h_last); c alternates between two blocks per layer (cells[k]).
+void stack_step(const Segment& seg, int64_t j, const TensorList& bs, TensorList& c, const TensorList& cells,
+                const Tensor& tc, const Tensor& block, const TensorList& h_last) {
+  const int64_t L = static_cast<int64_t>(seg.layers.size()), n = static_cast<int64_t>(seg.steps.size());
+  const int64_t H = tc.size(-1);
+  for (int64_t k = 0; k < L; ++k) {
+    const auto& lay = seg.layers[k];
+    auto sig = lay.sig[j];
+    at::baddbmm_out(sig, bs[k], lay.xh.select(1, seg.slot(j)), seg.ws[k]);
+    sig.sigmoid_();
+    auto up = k + 1 < L ? seg.layers[k + 1].xh.select(1, seg.slot(j)).narrow(-1, 0, H) : block.select(2, j);
+    auto next = j + 1 < n ? lay.xh.select(1, seg.slot(j + 1)).narrow(-1, lay.inputs, H) : h_last[k];
+    auto c_new = cells[k][j % 2];
+    cell_forward(sig, c[k], c_new, tc, lay.gd[j], lay.o_dt[j], up, next);
+    c[k] = c_new;
+  }
 }
 
 // ints: degree, slots, monomials (the FK plan), mixtures (0: deterministic head), dims (prediction columns
@@ -82,22 +146,22 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   seg->detach = ints[9] != 0;
   seg->ws = ws;
   seg->w_fb = w_fb;
-  const int64_t K = q0.size(0), B = q0.size(1), n = psi.size(2), m = seg->mixtures, dims = seg->dims;
-  const int64_t L = static_cast<int64_t>(h.size());
-  TensorList block;
+  const int64_t K = q0.size(0), B = q0.size(1), n = psi.size(2);
+  const int64_t L = static_cast<int64_t>(h.size()), H = h[0].size(-1);
+  seg->steps.resize(n);
+  seg->layers = segment_layers(ws, h, n);
+  const auto block = at::empty({K, B, n, H}, h[0].options());
+  const auto tc = at::empty({K, B, H}, h[0].options());
+  TensorList cells(L), h_last(L);
+  for (int64_t k = 0; k < L; ++k) {
+    cells[k] = at::empty({2, K, B, H}, h[0].options());
+    h_last[k] = at::empty({K, B, H}, h[0].options());
+    c[k] = rows_ready(c[k]);
+  }
   Tensor q_prev = q0;
   for (int64_t j = 0; j < n; ++j) {
-    Step st;
-    st.h_top_in = h[L - 1];
-    auto out = at::baddbmm(b_fb, h[L - 1], w_fb);  // stm.packed.PackView.feedback_predictor
-    Tensor pred;
-    if (m > 0) {  // the most likely component's mean (stm.mdn.component_mean)
-      auto mu = out.narrow(-1, m, m * dims).unflatten(-1, {m, dims});
-      st.idx = out.narrow(-1, 0, m).argmax(-1, true);
-      pred = at::gather(mu, -2, st.idx.unsqueeze(-1).expand({K, B, 1, dims})).squeeze(-2);
-    } else {
-      pred = out;
-    }
+    Step& st = seg->steps[j];
+    const auto pred = feedback_prediction(*seg, j == 0 ? h[L - 1] : block.select(2, j - 1), w_fb, b_fb, st);
     // stm.model.feedback_state
     auto z = q_prev + pred.narrow(-1, 0, JOINTS);
     auto q = at::clamp(z, lower, upper);
@@ -117,13 +181,72 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
       parts.push_back(tj.first.reshape({K, B, 3}) + phi_offset.select(2, j));
     }
     parts.push_back(psi.select(2, j));
-    auto x = at::cat(parts, -1) - mean;
-    stack_forward(x, h, c, ws, bs, st.layers);
-    block.push_back(h[L - 1]);
-    seg->steps.push_back(std::move(st));
+    // the centred input, straight into the bottom layer's [x, h]
+    auto x = seg->layers[0].xh.select(1, seg->slot(j)).narrow(-1, 0, seg->layers[0].inputs);
+    at::cat_out(x, parts, -1);
+    x.sub_(mean);
+    stack_step(*seg, j, bs, c, cells, tc, block, h_last);
     q_prev = q;
   }
-  return {at::stack(block, 2), h, c, seg};
+  return {block, h_last, c, seg};
+}
+
+// The backward of step j of the stack, top layer first (stm.lstm_step._stack_backward): gh, gc in (gc alternating
+// between two blocks per layer, gcs[k]), the gradients of the step's inputs out, and g_top, the gradient of the
+// top h from the block (undefined: none); d gates into the layers' rows dg[k]; returns d x (undefined unless
+// need_x).
+Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, TensorList& gc, const Tensor& g_top,
+                           const TensorList& dg, const TensorList& gcs, bool need_x) {
+  const int64_t L = static_cast<int64_t>(seg.layers.size());
+  Tensor below = g_top;
+  for (int64_t k = L - 1; k >= 0; --k) {
+    const auto& lay = seg.layers[k];
+    const int64_t H = lay.o_dt.size(-1), d_in = lay.inputs;
+    Tensor dh_a = gh[k].defined() ? gh[k] : below, dh_b = gh[k].defined() ? below : Tensor();
+    if (!dh_a.defined()) dh_a = at::zeros_like(lay.o_dt[j]);
+    auto dgates = dg[k].select(1, seg.slot(j));
+    auto gc_new = gcs[k][j % 2];
+    cell_backward(lay.sig[j], lay.gd[j], lay.o_dt[j], dh_a, dh_b, gc[k], dgates, gc_new);
+    gc[k] = gc_new;
+    const auto& w = seg.ws[k];
+    if (k > 0 || need_x) {
+      auto dxh = at::bmm(dgates, w.transpose(1, 2));
+      below = dxh.narrow(-1, 0, d_in);
+      gh[k] = dxh.narrow(-1, d_in, H);
+    } else {  // a detached input: only the recurrent part
+      below = Tensor();
+      gh[k] = at::bmm(dgates, w.narrow(1, d_in, H).transpose(1, 2));
+    }
+  }
+  return below;
+}
+
+// Back through stm.model.feedback_state and the feedback head at step j: from d x (the bottom layer's input) and
+// gq (the gradient of the q the step left for the next), the gradient of the head's outputs, into dout (a block
+// of zeros); returns the new gq.
+Tensor feedback_backward(const Segment& seg, const Step& st, const Tensor& dx, const Tensor& gq, Tensor dout) {
+  auto ds_dq = dx.narrow(-1, 0, JOINTS);
+  Tensor dq = gq.defined() ? gq + ds_dq : ds_dq;
+  if (!seg.free_phi) {
+    auto dtip = dx.narrow(-1, seg.phi_start, 3).reshape({-1, 3});
+    dq = dq + (st.jac * dtip.unsqueeze(1)).sum(-1).view(ds_dq.sizes());
+  }
+  auto dz = at::where(st.mask_q, dq, at::zeros({}, dq.options()));
+  TensorList dparts{dz};
+  if (seg.gripper) {
+    auto dg = dx.narrow(-1, JOINTS, 1);
+    dparts.push_back(at::where(st.mask_g.unsqueeze(-1), dg, at::zeros({}, dg.options())));
+  }
+  if (seg.free_phi) dparts.push_back(dx.narrow(-1, seg.phi_start, seg.phi_dim));
+  const int64_t m = seg.mixtures, dims = seg.dims;
+  if (m > 0) {  // gather's backward: into the chosen component's mean columns
+    const int64_t K = dx.size(0), B = dx.size(1);
+    dout.narrow(-1, m, m * dims).unflatten(-1, {m, dims}).scatter_(
+        -2, st.idx.unsqueeze(-1).expand({K, B, 1, dims}), at::cat(dparts, -1).unsqueeze(-2));
+  } else {
+    at::cat_out(dout, dparts, -1);
+  }
+  return dz - ds_dq;
 }
 
 // Gradients of the segment's inputs from those of its outputs (undefined where none reached them):
@@ -133,63 +256,38 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
     const std::shared_ptr<Segment>& seg, const c10::optional<Tensor>& g_block,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
   const int64_t L = static_cast<int64_t>(g_h.size()), n = static_cast<int64_t>(seg->steps.size());
-  const int64_t m = seg->mixtures, dims = seg->dims;
-  TensorList gh(L), gc(L), dgs(L);
+  const auto& top = seg->layers[L - 1];
+  const int64_t K = top.o_dt.size(1), B = top.o_dt.size(2), H = top.o_dt.size(3);
+  const auto opt = top.o_dt.options();
+  TensorList gh(L), gc(L), dg(L), gcs(L);
   for (int64_t k = 0; k < L; ++k) {
-    if (g_h[k].has_value()) gh[k] = *g_h[k];
-    if (g_c[k].has_value()) gc[k] = *g_c[k];
+    if (g_h[k].has_value()) gh[k] = rows_ready(*g_h[k]);
+    if (g_c[k].has_value()) gc[k] = rows_ready(*g_c[k]);
+    dg[k] = at::empty({K, n, B, 4 * H}, opt);  // rows in xh's order
+    gcs[k] = at::empty({2, K, B, H}, opt);
   }
-  std::vector<TensorList> xh_rows(L), dg_rows(L);
-  TensorList h_in, d_out;  // per step, for the feedback head's weight gradient
-  Tensor gq;               // gradient of the q a step leaves for the next
+  const Tensor gb = g_block.has_value() ? rows_ready(*g_block) : Tensor();
+  const int64_t outs = seg->w_fb.size(-1);
+  const Tensor douts = seg->detach ? Tensor() : at::zeros({K, n, B, outs}, opt);  // the head's, in xh's order
+  Tensor gq;  // gradient of the q a step leaves for the next
   for (int64_t j = n - 1; j >= 0; --j) {
-    const auto& st = seg->steps[j];
-    if (g_block.has_value()) {
-      auto gb = g_block->select(2, j);
-      gh[L - 1] = gh[L - 1].defined() ? gh[L - 1] + gb : gb;
-    }
-    auto dx = stack_backward(gh, gc, seg->ws, st.layers, !seg->detach, dgs);
-    for (int64_t k = 0; k < L; ++k) {
-      xh_rows[k].push_back(st.layers[k].xh);
-      dg_rows[k].push_back(dgs[k]);
-    }
+    const auto dx = stack_step_backward(*seg, j, gh, gc, gb.defined() ? gb.select(2, j) : Tensor(), dg, gcs,
+                                        !seg->detach);
     if (seg->detach) continue;
-    // back through stm.model.feedback_state: x = [q - q_prev, grip, phi, psi] - mean
-    auto ds_dq = dx.narrow(-1, 0, JOINTS);
-    Tensor dq = gq.defined() ? gq + ds_dq : ds_dq;
-    if (!seg->free_phi) {
-      auto dtip = dx.narrow(-1, seg->phi_start, 3).reshape({-1, 3});
-      dq = dq + (st.jac * dtip.unsqueeze(1)).sum(-1).view(ds_dq.sizes());
-    }
-    auto dz = at::where(st.mask_q, dq, at::zeros({}, dq.options()));
-    gq = dz - ds_dq;
-    TensorList dparts{dz};
-    if (seg->gripper) {
-      auto dg = dx.narrow(-1, JOINTS, 1);
-      dparts.push_back(at::where(st.mask_g.unsqueeze(-1), dg, at::zeros({}, dg.options())));
-    }
-    if (seg->free_phi) dparts.push_back(dx.narrow(-1, seg->phi_start, seg->phi_dim));
-    auto dpred = at::cat(dparts, -1);
-    Tensor dout;
-    if (m > 0) {  // gather's backward: into the chosen component's mean columns
-      const int64_t K = dpred.size(0), B = dpred.size(1);
-      dout = at::zeros({K, B, m + m * dims}, dpred.options());
-      dout.narrow(-1, m, m * dims).unflatten(-1, {m, dims}).scatter_(
-          -2, st.idx.unsqueeze(-1).expand({K, B, 1, dims}), dpred.unsqueeze(-2));
-    } else {
-      dout = dpred;
-    }
+    const auto dout = douts.select(1, seg->slot(j));
+    gq = feedback_backward(*seg, seg->steps[j], dx, gq, dout);
     gh[L - 1] = gh[L - 1] + at::bmm(dout, seg->w_fb.transpose(1, 2));
-    h_in.push_back(st.h_top_in);
-    d_out.push_back(dout);
   }
   TensorList dw(L), db(L);
-  for (int64_t k = 0; k < L; ++k) weight_gradient(at::cat(xh_rows[k], -2), at::cat(dg_rows[k], -2), dw[k], db[k]);
+  for (int64_t k = 0; k < L; ++k) {
+    const auto& lay = seg->layers[k];
+    weight_gradient(lay.xh.view({K, n * B, -1}), dg[k].view({K, n * B, 4 * H}), dw[k], db[k]);
+  }
   Tensor dw_fb, db_fb;
   if (!seg->detach) {  // one product for all the segment's steps
-    auto douts = at::cat(d_out, 1);
-    dw_fb = at::bmm(at::cat(h_in, 1).transpose(1, 2), douts);
-    db_fb = douts.sum(1, true);
+    const auto rows = douts.view({K, n * B, outs});
+    dw_fb = at::bmm(top.xh.narrow(-1, top.inputs, H).view({K, n * B, H}).transpose(1, 2), rows);
+    db_fb = rows.sum(1, true);
   }
   return {gh, gc, dw_fb, db_fb, dw, db};
 }
