@@ -139,6 +139,7 @@ void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db)
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
     Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h_in,
     const TensorList& w_hT) {
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h
   auto seq = std::make_shared<Sequence>();
   seq->ws = ws;
   seq->w_hT = w_hT;
@@ -180,6 +181,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_f
 std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h
   const int64_t L = static_cast<int64_t>(seq->layers.size());
   TensorList dh0(L), dc0(L), dw(L), db(L);
   Tensor g_out = g_out_top.has_value() ? rows_ready(*g_out_top) : Tensor();

@@ -6,6 +6,11 @@
 //
 // A step block is a (K, B, X) tensor whose last dimension is contiguous; its K and B strides are free, so that a
 // step's rows can be read from and written into a buffer of all the run's steps (a slice of it) without copies.
+//
+// below_autograd: the forward and backward entry points (here and in self_fed.cpp) dispatch their ATen calls below
+// autograd (AutoDispatchBelowADInplaceOrView): the Python autograd Function is the graph's node, and its inner calls
+// need none of autograd's per-call bookkeeping (a view's tracking, version counters), a good part of a small op's
+// cost. Nothing here modifies a caller's tensor in place, so the untracked versions lose nothing.
 #pragma once
 
 #include <ATen/ATen.h>

@@ -135,6 +135,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
     TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const Tensor& w_fb, const Tensor& b_fb,
     const Tensor& q0, const Tensor& psi, const Tensor& phi_offset, const Tensor& mean, const Tensor& lower,
     const Tensor& upper, const TensorList& fk, const std::vector<int64_t>& ints) {
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h, below_autograd
   auto seg = std::make_shared<Segment>();
   const int64_t degree = ints[0], slots = ints[1], monomials = ints[2];
   seg->mixtures = ints[3];
@@ -255,6 +256,7 @@ Tensor feedback_backward(const Segment& seg, const Step& st, const Tensor& dx, c
 std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segment_backward(
     const std::shared_ptr<Segment>& seg, const c10::optional<Tensor>& g_block,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h, below_autograd
   const int64_t L = static_cast<int64_t>(g_h.size()), n = static_cast<int64_t>(seg->steps.size());
   const auto& top = seg->layers[L - 1];
   const int64_t K = top.o_dt.size(1), B = top.o_dt.size(2), H = top.o_dt.size(3);
