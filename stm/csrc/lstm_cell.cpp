@@ -136,6 +136,50 @@ void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db)
   db = dg.sum(1, true);
 }
 
+namespace {
+
+// The layers' [x, h] buffers of a sequence: x of the bottom layer and each layer's initial h copied in; the
+// rest is written by the steps.
+std::vector<SeqLayer> sequence_layers(const Tensor& x, const TensorList& h, const TensorList& ws) {
+  const int64_t K = x.size(0), B = x.size(1), n = x.size(2), H = h[0].size(-1);
+  std::vector<SeqLayer> layers(h.size());
+  for (size_t k = 0; k < h.size(); ++k) {
+    auto& lay = layers[k];
+    lay.inputs = ws[k].size(1) - H;
+    lay.xh = at::empty({K, B, n, lay.inputs + H}, x.options());
+    lay.xh.select(2, 0).narrow(-1, lay.inputs, H).copy_(h[k]);
+  }
+  layers[0].xh.narrow(-1, 0, layers[0].inputs).copy_(x);
+  return layers;
+}
+
+// Layer k of a sequence, all n steps: each step's h into the next layer's x (the top's into out) and into its own
+// [x, h] of the next step (after the last: h_last); c alternates between two blocks, the last returned.
+Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0, const Tensor& w, const Tensor& b,
+                      const Tensor& w_h, const Tensor& out, const Tensor& h_last) {
+  auto& lay = layers[k];
+  const int64_t K = lay.xh.size(0), B = lay.xh.size(1), n = lay.xh.size(2), I = lay.inputs, H = h_last.size(-1);
+  auto x = lay.xh.narrow(-1, 0, I).view({K, B * n, I});
+  lay.sig = at::baddbmm(b, x, w.narrow(1, 0, I)).view({K, B, n, 4 * H});
+  lay.gd = step_buffer(n, x, K, B, 4 * H);
+  lay.o_dt = step_buffer(n, x, K, B, H);
+  const auto cells = step_buffer(2, x, K, B, H);
+  const auto tc = at::empty({K, B, H}, x.options());
+  Tensor c = rows_ready(c0);
+  for (int64_t t = 0; t < n; ++t) {
+    auto sig = lay.sig.select(2, t);
+    at::baddbmm_out(sig, sig, lay.xh.select(2, t).narrow(-1, I, H), w_h);  // the projection in place
+    sig.sigmoid_();
+    auto up = k + 1 < layers.size() ? layers[k + 1].xh.select(2, t).narrow(-1, 0, H) : out.select(2, t);
+    auto next = t + 1 < n ? lay.xh.select(2, t + 1).narrow(-1, I, H) : h_last;
+    cell_forward(sig, c, cells[t % 2], tc, lay.gd[t], lay.o_dt[t], up, next);
+    c = cells[t % 2];
+  }
+  return c;
+}
+
+}  // namespace
+
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
     Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h_in,
     const TensorList& w_hT) {
@@ -144,37 +188,15 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_f
   seq->ws = ws;
   seq->w_hT = w_hT;
   const int64_t K = x.size(0), B = x.size(1), n = x.size(2), H = h[0].size(-1);
+  seq->layers = sequence_layers(x, h, ws);
+  const auto out = at::empty({K, B, n, H}, x.options());
   for (size_t k = 0; k < h.size(); ++k) {
-    const int64_t I = x.size(3);
-    SeqLayer lay;
-    lay.x = x;
-    lay.h0 = h[k];
-    auto w_x = ws[k].narrow(1, 0, I);
+    const int64_t I = seq->layers[k].inputs;
     auto w_h = w_h_in.empty() ? ws[k].narrow(1, I, H).contiguous() : w_h_in[k];
-    auto proj = at::baddbmm(bs[k], x.reshape({K, B * n, I}), w_x).view({K, B, n, 4 * H});
-    // the step's outputs go straight into their buffers: h into out, c alternating between two blocks
-    lay.out = at::empty({K, B, n, H}, x.options());
-    lay.sig = step_buffer(n, x, K, B, 4 * H);
-    lay.gd = step_buffer(n, x, K, B, 4 * H);
-    lay.o_dt = step_buffer(n, x, K, B, H);
-    const auto cells = step_buffer(2, x, K, B, H);
-    const auto tc = at::empty({K, B, H}, x.options());
-    Tensor hk = rows_ready(h[k]), ck = rows_ready(c[k]);
-    for (int64_t t = 0; t < n; ++t) {
-      auto sig = lay.sig[t];
-      at::baddbmm_out(sig, proj.select(2, t), hk, w_h);
-      sig.sigmoid_();
-      auto h_new = lay.out.select(2, t), c_new = cells[t % 2];
-      cell_forward(sig, ck, c_new, tc, lay.gd[t], lay.o_dt[t], h_new, Tensor());
-      hk = h_new;
-      ck = c_new;
-    }
-    x = lay.out;
-    h[k] = hk.clone(at::MemoryFormat::Contiguous);  // its own memory: an output apart from out
-    c[k] = ck;
-    seq->layers.push_back(std::move(lay));
+    h[k] = at::empty({K, B, H}, x.options());
+    c[k] = sequence_layer(seq->layers, k, c[k], ws[k], bs[k], w_h, out, h[k]);
   }
-  return {x, h, c, seq};
+  return {out, h, c, seq};
 }
 
 // Gradients of the initial h, c and of w, b per layer; the inputs' gradient is not needed (known inputs).
@@ -187,28 +209,28 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
   Tensor g_out = g_out_top.has_value() ? rows_ready(*g_out_top) : Tensor();
   for (int64_t k = L - 1; k >= 0; --k) {
     const auto& lay = seq->layers[k];
-    const int64_t K = lay.x.size(0), B = lay.x.size(1), n = lay.x.size(2), I = lay.x.size(3);
-    const int64_t H = lay.h0.size(-1);
+    const int64_t K = lay.xh.size(0), B = lay.xh.size(1), n = lay.xh.size(2), I = lay.inputs;
+    const int64_t H = lay.o_dt.size(-1);
+    const auto opt = lay.o_dt.options();
     auto w_hT = seq->w_hT.empty() ? seq->ws[k].narrow(1, I, H).transpose(1, 2).contiguous() : seq->w_hT[k];
-    Tensor dh_rec = g_h[k].has_value() ? rows_ready(*g_h[k]) : at::zeros_like(lay.h0);
+    Tensor dh_rec = g_h[k].has_value() ? rows_ready(*g_h[k]) : at::zeros({K, B, H}, opt);
     Tensor dc = g_c[k].has_value() ? rows_ready(*g_c[k]) : Tensor();
     // d gates straight into the rows of the weight gradient; dh, dc alternating between two blocks each
-    const auto dg = at::empty({K, B, n, 4 * H}, lay.out.options());
-    const auto dhs = step_buffer(2, lay.out, K, B, H), dcs = step_buffer(2, lay.out, K, B, H);
+    const auto dg = at::empty({K, B, n, 4 * H}, opt);
+    const auto dhs = step_buffer(2, dg, K, B, H), dcs = step_buffer(2, dg, K, B, H);
     for (int64_t t = n - 1; t >= 0; --t) {
       auto dg_t = dg.select(2, t);
-      cell_backward(lay.sig[t], lay.gd[t], lay.o_dt[t], dh_rec, g_out.defined() ? g_out.select(2, t) : Tensor(),
-                    dc, dg_t, dcs[t % 2]);
+      cell_backward(lay.sig.select(2, t), lay.gd[t], lay.o_dt[t], dh_rec,
+                    g_out.defined() ? g_out.select(2, t) : Tensor(), dc, dg_t, dcs[t % 2]);
       dc = dcs[t % 2];
       dh_rec = dhs[t % 2];
       at::bmm_out(dh_rec, dg_t, w_hT);
     }
     auto dg_rows = dg.view({K, B * n, 4 * H});
-    auto h_prev = at::cat({lay.h0.unsqueeze(2), lay.out.narrow(2, 0, n - 1)}, 2).reshape({K, B * n, H});
-    weight_gradient(at::cat({lay.x.reshape({K, B * n, I}), h_prev}, -1), dg_rows, dw[k], db[k]);
+    weight_gradient(lay.xh.view({K, B * n, I + H}), dg_rows, dw[k], db[k]);
     if (k > 0) g_out = at::bmm(dg_rows, seq->ws[k].narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
     dh0[k] = dh_rec;
-    dc0[k] = dc.defined() ? dc : at::zeros_like(lay.h0);
+    dc0[k] = dc.defined() ? dc : at::zeros({K, B, H}, opt);
   }
   return {dh0, dc0, dw, db};
 }

@@ -38,9 +38,13 @@ Tensor rows_ready(const Tensor& t);
 // Known inputs (ground truth) through the stack, n steps: layer by layer, the input projection of all steps as one
 // product and only the recurrent part stepped (stm.packed_lstm_step._LayerSeq, op for op). For short runs between
 // self-fed segments this beats oneDNN's fused layer, whose set-up costs more than its five steps.
+// Each layer's [x, h] rows (K, B, n, I + H) are written as the steps run (x by the layer below, h by the layer
+// itself one step ahead): the input projection and the weight gradient read them in place. sig holds the input
+// projection, each step's recurrent product added in place and its sigmoids taken there.
 struct SeqLayer {
-  Tensor x, h0, out;  // input (K, B, n, I), initial h, outputs (K, B, n, H)
-  Tensor sig, gd, o_dt;  // per step: (n, K, B, 4H), (n, K, B, 4H), (n, K, B, H)
+  Tensor xh, sig;     // (K, B, n, I + H), (K, B, n, 4H)
+  Tensor gd, o_dt;    // per step: (n, K, B, 4H), (n, K, B, H)
+  int64_t inputs = 0;  // I
 };
 
 struct Sequence {

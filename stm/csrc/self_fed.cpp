@@ -78,8 +78,9 @@ std::pair<Tensor, Tensor> tip_kinematics(const Tensor& q, const TensorList& fk, 
   return {out.select(1, 0), out.narrow(1, 1, slots - 1)};
 }
 
-// The layers' buffers for n steps; each layer's h before the segment into its [x, h] of the first step.
-std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& h, int64_t n) {
+// The layers' buffers for n steps; each layer's h before the segment into its [x, h] of the first step, its bias
+// into every step's sig (the steps add their products in place: one copy per layer, not one per step).
+std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs, const TensorList& h, int64_t n) {
   const int64_t K = h[0].size(0), B = h[0].size(1), H = h[0].size(2);
   const auto opt = h[0].options();
   std::vector<SegLayer> layers;
@@ -87,7 +88,7 @@ std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& h, 
     SegLayer lay;
     lay.inputs = ws[k].size(1) - H;
     lay.xh = at::empty({K, n, B, lay.inputs + H}, opt);
-    lay.sig = at::empty({n, K, B, 4 * H}, opt);
+    lay.sig = bs[k].expand({n, K, B, 4 * H}).contiguous();
     lay.gd = at::empty({n, K, B, 4 * H}, opt);
     lay.o_dt = at::empty({n, K, B, H}, opt);
     lay.xh.select(1, n - 1).narrow(-1, lay.inputs, H).copy_(h[k]);
@@ -112,14 +113,14 @@ Tensor feedback_prediction(const Segment& seg, const Tensor& h_top, const Tensor
 // One step of the stack, bottom layer first (stm.lstm_step._stack_forward), on the segment's buffers: each layer's
 // h goes straight into the next layer's [x, h] of this step (the top's into the block) and into its own [x, h]
 // of the next step (after the last step: into h_last); c alternates between two blocks per layer (cells[k]).
-void stack_step(const Segment& seg, int64_t j, const TensorList& bs, TensorList& c, const TensorList& cells,
+void stack_step(const Segment& seg, int64_t j, TensorList& c, const TensorList& cells,
                 const Tensor& tc, const Tensor& block, const TensorList& h_last) {
   const int64_t L = static_cast<int64_t>(seg.layers.size()), n = static_cast<int64_t>(seg.steps.size());
   const int64_t H = tc.size(-1);
   for (int64_t k = 0; k < L; ++k) {
     const auto& lay = seg.layers[k];
     auto sig = lay.sig[j];
-    at::baddbmm_out(sig, bs[k], lay.xh.select(1, seg.slot(j)), seg.ws[k]);
+    at::baddbmm_out(sig, sig, lay.xh.select(1, seg.slot(j)), seg.ws[k]);  // sig holds the bias
     sig.sigmoid_();
     auto up = k + 1 < L ? seg.layers[k + 1].xh.select(1, seg.slot(j)).narrow(-1, 0, H) : block.select(2, j);
     auto next = j + 1 < n ? lay.xh.select(1, seg.slot(j + 1)).narrow(-1, lay.inputs, H) : h_last[k];
@@ -150,7 +151,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   const int64_t K = q0.size(0), B = q0.size(1), n = psi.size(2);
   const int64_t L = static_cast<int64_t>(h.size()), H = h[0].size(-1);
   seg->steps.resize(n);
-  seg->layers = segment_layers(ws, h, n);
+  seg->layers = segment_layers(ws, bs, h, n);
   const auto block = at::empty({K, B, n, H}, h[0].options());
   const auto tc = at::empty({K, B, H}, h[0].options());
   TensorList cells(L), h_last(L);
@@ -186,7 +187,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
     auto x = seg->layers[0].xh.select(1, seg->slot(j)).narrow(-1, 0, seg->layers[0].inputs);
     at::cat_out(x, parts, -1);
     x.sub_(mean);
-    stack_step(*seg, j, bs, c, cells, tc, block, h_last);
+    stack_step(*seg, j, c, cells, tc, block, h_last);
     q_prev = q;
   }
   return {block, h_last, c, seg};
