@@ -19,7 +19,8 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-SOURCES = [Path(__file__).parent / "csrc" / name for name in ("self_fed.cpp", "lstm_cell.cpp", "mdn_nll.cpp")]
+SOURCES = [Path(__file__).parent / "csrc" / name
+           for name in ("self_fed.cpp", "lstm_cell.cpp", "feedback_state.cpp", "mdn_nll.cpp")]
 NAME = "stm_self_fed"
 load_seconds: float | None = None  # how long loading took in this process (a first build: about a minute)
 

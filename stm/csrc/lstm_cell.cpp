@@ -2,27 +2,14 @@
 // sources only.)
 #include "lstm_cell.h"
 
+#include "rows.h"
+
 #include <ATen/Dispatch.h>
 
 #include <algorithm>
 
 namespace stm_cpp {
 namespace {
-
-// A step block's rows (lstm_cell.h): row (k, b) starts at p + k * sk + b * sb.
-template <typename T>
-struct Rows {
-  T* p = nullptr;
-  int64_t sk = 0, sb = 0;
-  T* at(int64_t k, int64_t b) const { return p + k * sk + b * sb; }
-};
-
-template <typename T>
-Rows<T> rows(const Tensor& t) {
-  if (!t.defined()) return {};
-  TORCH_CHECK(t.dim() == 3 && t.stride(2) == 1, "a step block is (K, B, X), its last dimension contiguous");
-  return {t.data_ptr<T>(), t.stride(0), t.stride(1)};
-}
 
 // The LSTM cell's elementwise maths in plain loops, one pass before ATen's tanh and one after, instead of a
 // dozen ATen calls: the same arithmetic, operation for operation, as those calls of stm.lstm_step (addcmul(a, b,

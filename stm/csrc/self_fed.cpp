@@ -19,11 +19,16 @@
 #include <memory>
 #include <vector>
 
+#include "feedback_state.h"
 #include "lstm_cell.h"
 #include "mdn_nll.h"
 
 using stm_cpp::cell_backward;
 using stm_cpp::cell_forward;
+using stm_cpp::fed_backward;
+using stm_cpp::fed_context;
+using stm_cpp::fed_joints;
+using stm_cpp::JOINTS;
 using stm_cpp::rows_ready;
 using stm_cpp::Sequence;
 using stm_cpp::Tensor;
@@ -32,13 +37,9 @@ using stm_cpp::weight_gradient;
 
 namespace {
 
-constexpr int64_t JOINTS = 7;
-
 struct Step {
-  Tensor idx;     // the mixture component fed back (MDN head)
-  Tensor mask_q;  // where q_prev + dq was within the joint limits (clamp passes the gradient)
-  Tensor mask_g;  // where the gripper prediction was within [0, 1]
-  Tensor jac;     // d tip / d q (N, JOINTS, 3)
+  Tensor idx;  // the mixture component fed back (MDN head)
+  Tensor jac;  // d tip / d q (K, B, JOINTS * 3)
 };
 
 // A layer's values over the segment's n steps, in buffers written step by step (lstm_cell.h's step blocks).
@@ -57,6 +58,9 @@ struct Segment {
   Tensor w_fb;
   std::vector<Step> steps;
   std::vector<SegLayer> layers;
+  Tensor qs;      // the fed-back q per step (n, K, B, JOINTS)
+  Tensor mask_q;  // where q_prev + dq was within the joint limits (clamp passes the gradient) (n, K, B, JOINTS)
+  Tensor mask_g;  // where the gripper prediction was within [0, 1] (n, K, B, 1)
   int64_t mixtures = 0, dims = 0, phi_start = 0, phi_dim = 0;
   bool gripper = false, free_phi = false, detach = false;
   int64_t slot(int64_t j) const { return static_cast<int64_t>(steps.size()) - 1 - j; }
@@ -160,33 +164,32 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
     h_last[k] = at::empty({K, B, H}, h[0].options());
     c[k] = rows_ready(c[k]);
   }
-  Tensor q_prev = q0;
+  const auto bool_opt = h[0].options().dtype(at::kBool);
+  seg->qs = at::empty({n, K, B, JOINTS}, h[0].options());
+  seg->mask_q = at::empty({n, K, B, JOINTS}, bool_opt);
+  if (seg->gripper) seg->mask_g = at::empty({n, K, B, 1}, bool_opt);
+  // the constants as broadcast step blocks
+  const auto mean_rows = rows_ready(mean).expand({K, B, mean.size(-1)});
+  const auto lo = rows_ready(lower).expand({K, B, JOINTS}), hi = rows_ready(upper).expand({K, B, JOINTS});
+  const auto psi_rows = rows_ready(psi), offsets = rows_ready(phi_offset);
+  Tensor q_prev = rows_ready(q0);
   for (int64_t j = 0; j < n; ++j) {
     Step& st = seg->steps[j];
     const auto pred = feedback_prediction(*seg, j == 0 ? h[L - 1] : block.select(2, j - 1), w_fb, b_fb, st);
-    // stm.model.feedback_state
-    auto z = q_prev + pred.narrow(-1, 0, JOINTS);
-    auto q = at::clamp(z, lower, upper);
-    st.mask_q = at::logical_and(z >= lower, z <= upper);
-    TensorList parts{q - q_prev};
-    if (seg->gripper) {
-      auto g_raw = pred.select(-1, JOINTS);
-      auto g = g_raw.clamp(0.0, 1.0);
-      st.mask_g = at::logical_and(g_raw >= 0.0, g_raw <= 1.0);
-      parts.push_back((g + (at::round(g) - g)).unsqueeze(-1));  // straight-through rounding
-    }
-    if (seg->free_phi) {
-      parts.push_back(pred.narrow(-1, seg->phi_start, seg->phi_dim));
-    } else {  // phi = tip + an offset that depends on psi alone (checked on the Python side)
-      auto tj = tip_kinematics(q.reshape({-1, JOINTS}), fk, degree, slots, monomials);
-      st.jac = tj.second;
-      parts.push_back(tj.first.reshape({K, B, 3}) + phi_offset.select(2, j));
-    }
-    parts.push_back(psi.select(2, j));
-    // the centred input, straight into the bottom layer's [x, h]
+    // stm.model.feedback_state, the centred input straight into the bottom layer's [x, h]
     auto x = seg->layers[0].xh.select(1, seg->slot(j)).narrow(-1, 0, seg->layers[0].inputs);
-    at::cat_out(x, parts, -1);
-    x.sub_(mean);
+    const auto q = seg->qs[j];
+    fed_joints(q_prev, pred, lo, hi, mean_rows, q, seg->mask_q[j], x, seg->gripper ? seg->mask_g[j] : Tensor());
+    if (seg->free_phi) {
+      fed_context(pred.narrow(-1, seg->phi_start, seg->phi_dim), Tensor(), psi_rows.select(2, j), mean_rows,
+                  seg->phi_start, x);
+    } else {  // phi = tip + an offset that depends on psi alone (checked on the Python side)
+      auto tj = tip_kinematics(q.view({-1, JOINTS}), fk, degree, slots, monomials);
+      TORCH_CHECK(tj.second.size(1) == JOINTS, "the tip kinematics' Jacobian: one row per joint");
+      st.jac = tj.second.reshape({K, B, JOINTS * 3});
+      fed_context(tj.first.view({K, B, 3}), offsets.select(2, j), psi_rows.select(2, j), mean_rows, seg->phi_start,
+                  x);
+    }
     stack_step(*seg, j, c, cells, tc, block, h_last);
     q_prev = q;
   }
@@ -223,34 +226,6 @@ Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, Tensor
   return below;
 }
 
-// Back through stm.model.feedback_state and the feedback head at step j: from d x (the bottom layer's input) and
-// gq (the gradient of the q the step left for the next), the gradient of the head's outputs, into dout (a block
-// of zeros); returns the new gq.
-Tensor feedback_backward(const Segment& seg, const Step& st, const Tensor& dx, const Tensor& gq, Tensor dout) {
-  auto ds_dq = dx.narrow(-1, 0, JOINTS);
-  Tensor dq = gq.defined() ? gq + ds_dq : ds_dq;
-  if (!seg.free_phi) {
-    auto dtip = dx.narrow(-1, seg.phi_start, 3).reshape({-1, 3});
-    dq = dq + (st.jac * dtip.unsqueeze(1)).sum(-1).view(ds_dq.sizes());
-  }
-  auto dz = at::where(st.mask_q, dq, at::zeros({}, dq.options()));
-  TensorList dparts{dz};
-  if (seg.gripper) {
-    auto dg = dx.narrow(-1, JOINTS, 1);
-    dparts.push_back(at::where(st.mask_g.unsqueeze(-1), dg, at::zeros({}, dg.options())));
-  }
-  if (seg.free_phi) dparts.push_back(dx.narrow(-1, seg.phi_start, seg.phi_dim));
-  const int64_t m = seg.mixtures, dims = seg.dims;
-  if (m > 0) {  // gather's backward: into the chosen component's mean columns
-    const int64_t K = dx.size(0), B = dx.size(1);
-    dout.narrow(-1, m, m * dims).unflatten(-1, {m, dims}).scatter_(
-        -2, st.idx.unsqueeze(-1).expand({K, B, 1, dims}), at::cat(dparts, -1).unsqueeze(-2));
-  } else {
-    at::cat_out(dout, dparts, -1);
-  }
-  return dz - ds_dq;
-}
-
 // Gradients of the segment's inputs from those of its outputs (undefined where none reached them):
 // d h, d c per layer (of the state before the segment), d w_fb, d b_fb (undefined with detached feedback),
 // and d w, d b per layer.
@@ -272,13 +247,19 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
   const Tensor gb = g_block.has_value() ? rows_ready(*g_block) : Tensor();
   const int64_t outs = seg->w_fb.size(-1);
   const Tensor douts = seg->detach ? Tensor() : at::zeros({K, n, B, outs}, opt);  // the head's, in xh's order
+  const auto gqs = seg->detach ? Tensor() : at::empty({2, K, B, JOINTS}, opt);  // alternating blocks
   Tensor gq;  // gradient of the q a step leaves for the next
   for (int64_t j = n - 1; j >= 0; --j) {
     const auto dx = stack_step_backward(*seg, j, gh, gc, gb.defined() ? gb.select(2, j) : Tensor(), dg, gcs,
                                         !seg->detach);
     if (seg->detach) continue;
     const auto dout = douts.select(1, seg->slot(j));
-    gq = feedback_backward(*seg, seg->steps[j], dx, gq, dout);
+    // back through stm.model.feedback_state and the head's component choice (gather)
+    const auto& st = seg->steps[j];
+    const auto gq_new = gqs[j % 2];
+    fed_backward(dx, gq, st.jac, seg->mask_q[j], seg->gripper ? seg->mask_g[j] : Tensor(), st.idx, seg->phi_start,
+                 seg->free_phi ? seg->phi_dim : 0, seg->mixtures, seg->dims, gq_new, dout);
+    gq = gq_new;
     gh[L - 1] = gh[L - 1] + at::bmm(dout, seg->w_fb.transpose(1, 2));
   }
   TensorList dw(L), db(L);

@@ -1,0 +1,115 @@
+// The fed-back state's elementwise part: see feedback_state.h. (Edit this file with the header: the build is keyed
+// on the sources only.)
+#include "feedback_state.h"
+
+#include <ATen/Dispatch.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "rows.h"
+
+namespace stm_cpp {
+namespace {
+
+// ATen's clamp: NaN stays NaN (std::max(NaN, lo) is NaN, and so is std::min of it).
+template <typename T>
+T clamp(T v, T lo, T hi) {
+  return std::min(std::max(v, lo), hi);
+}
+
+template <typename T>
+void joints_row(const T* qp, const T* pr, const T* lo, const T* hi, const T* mean, T* q, bool* mq, T* x, bool* mg) {
+  for (int64_t i = 0; i < JOINTS; ++i) {
+    const T z = qp[i] + pr[i];
+    q[i] = clamp(z, lo[i], hi[i]);
+    mq[i] = z >= lo[i] && z <= hi[i];
+    x[i] = (q[i] - qp[i]) - mean[i];
+  }
+  if (mg != nullptr) {
+    const T g_raw = pr[JOINTS], g = clamp(g_raw, T(0), T(1));
+    *mg = g_raw >= T(0) && g_raw <= T(1);
+    x[JOINTS] = (g + (std::nearbyint(g) - g)) - mean[JOINTS];  // round half to even, as torch.round
+  }
+}
+
+// One row's backward (see fed_backward); dpred: the prediction's gradient columns, scattered by the caller.
+template <typename T>
+void backward_row(const T* dx, const T* gq, const T* jac, const bool* mq, const bool* mg, int64_t phi_start,
+                  int64_t phi_dim, T* gq_new, T* dpred) {
+  for (int64_t i = 0; i < JOINTS; ++i) {
+    T dq = gq != nullptr ? gq[i] + dx[i] : dx[i];
+    if (jac != nullptr) {
+      const T* d_tip = dx + phi_start;
+      const T* row = jac + 3 * i;
+      dq = dq + ((row[0] * d_tip[0] + row[1] * d_tip[1]) + row[2] * d_tip[2]);
+    }
+    const T dz = mq[i] ? dq : T(0);
+    gq_new[i] = dz - dx[i];
+    dpred[i] = dz;
+  }
+  if (mg != nullptr) dpred[JOINTS] = *mg ? dx[JOINTS] : T(0);
+  for (int64_t c = 0; c < phi_dim; ++c) dpred[phi_start + c] = dx[phi_start + c];
+}
+
+}  // namespace
+
+void fed_joints(const at::Tensor& q_prev, const at::Tensor& pred, const at::Tensor& lower, const at::Tensor& upper,
+                const at::Tensor& mean, const at::Tensor& q, const at::Tensor& mask_q, const at::Tensor& x,
+                const at::Tensor& mask_g) {
+  const int64_t K = q.size(0), B = q.size(1);
+  const auto mq = rows<bool>(mask_q), mg = rows<bool>(mask_g);
+  AT_DISPATCH_FLOATING_TYPES(q.scalar_type(), "fed_joints", [&] {
+    using T = scalar_t;
+    const auto qp = rows<T>(q_prev), pr = rows<T>(pred), lo = rows<T>(lower), hi = rows<T>(upper),
+               mu = rows<T>(mean), qr = rows<T>(q), xr = rows<T>(x);
+    for (int64_t k = 0; k < K; ++k) {
+      for (int64_t b = 0; b < B; ++b) {
+        joints_row<T>(qp.at(k, b), pr.at(k, b), lo.at(k, b), hi.at(k, b), mu.at(k, b), qr.at(k, b), mq.at(k, b),
+                      xr.at(k, b), mg.p != nullptr ? mg.at(k, b) : nullptr);
+      }
+    }
+  });
+}
+
+void fed_context(const at::Tensor& phi_src, const at::Tensor& offset, const at::Tensor& psi, const at::Tensor& mean,
+                 int64_t phi_start, const at::Tensor& x) {
+  const int64_t K = x.size(0), B = x.size(1), phi_dim = phi_src.size(2), P = psi.size(2);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "fed_context", [&] {
+    using T = scalar_t;
+    const auto src = rows<T>(phi_src), off = rows<T>(offset), ps = rows<T>(psi), mu = rows<T>(mean),
+               xr = rows<T>(x);
+    for (int64_t k = 0; k < K; ++k) {
+      for (int64_t b = 0; b < B; ++b) {
+        const T* s = src.at(k, b);
+        const T* m = mu.at(k, b) + phi_start;
+        T* xp = xr.at(k, b) + phi_start;
+        for (int64_t c = 0; c < phi_dim; ++c) xp[c] = (off.p != nullptr ? s[c] + off.at(k, b)[c] : s[c]) - m[c];
+        for (int64_t c = 0; c < P; ++c) xp[phi_dim + c] = ps.at(k, b)[c] - m[phi_dim + c];
+      }
+    }
+  });
+}
+
+void fed_backward(const at::Tensor& dx, const at::Tensor& gq, const at::Tensor& jac, const at::Tensor& mask_q,
+                  const at::Tensor& mask_g, const at::Tensor& idx, int64_t phi_start, int64_t phi_dim,
+                  int64_t mixtures, int64_t dims, const at::Tensor& gq_new, const at::Tensor& dout) {
+  const int64_t K = dx.size(0), B = dx.size(1);
+  const auto mq = rows<bool>(mask_q), mg = rows<bool>(mask_g);
+  const auto ix = rows<int64_t>(idx);
+  AT_DISPATCH_FLOATING_TYPES(dx.scalar_type(), "fed_backward", [&] {
+    using T = scalar_t;
+    const auto d = rows<T>(dx), g = rows<T>(gq), jr = rows<T>(jac), gn = rows<T>(gq_new), out = rows<T>(dout);
+    for (int64_t k = 0; k < K; ++k) {
+      for (int64_t b = 0; b < B; ++b) {
+        // gather's backward: the columns land at the chosen component's mean (after the m logits)
+        T* dpred = mixtures > 0 ? out.at(k, b) + mixtures + ix.at(k, b)[0] * dims : out.at(k, b);
+        backward_row<T>(d.at(k, b), g.p != nullptr ? g.at(k, b) : nullptr, jr.p != nullptr ? jr.at(k, b) : nullptr,
+                        mq.at(k, b), mg.p != nullptr ? mg.at(k, b) : nullptr, phi_start, phi_dim, gn.at(k, b),
+                        dpred);
+      }
+    }
+  });
+}
+
+}  // namespace stm_cpp
