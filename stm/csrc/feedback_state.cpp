@@ -54,12 +54,11 @@ void backward_row(const T* dx, const T* gq, const T* jac, const bool* mq, const 
 
 }  // namespace
 
-void fed_joints(const at::Tensor& q_prev, const at::Tensor& pred, const at::Tensor& lower, const at::Tensor& upper,
-                const at::Tensor& mean, const at::Tensor& q, const at::Tensor& mask_q, const at::Tensor& x,
-                const at::Tensor& mask_g) {
-  const int64_t K = q.size(0), B = q.size(1);
+void fed_joints(const Block& q_prev, const at::Tensor& pred, const Block& lower, const Block& upper,
+                const Block& mean, const Block& q, const Block& mask_q, const Block& x, const Block& mask_g) {
+  const int64_t K = pred.size(0), B = pred.size(1);
   const auto mq = rows<bool>(mask_q), mg = rows<bool>(mask_g);
-  AT_DISPATCH_FLOATING_TYPES(q.scalar_type(), "fed_joints", [&] {
+  AT_DISPATCH_FLOATING_TYPES(pred.scalar_type(), "fed_joints", [&] {
     using T = scalar_t;
     const auto qp = rows<T>(q_prev), pr = rows<T>(pred), lo = rows<T>(lower), hi = rows<T>(upper),
                mu = rows<T>(mean), qr = rows<T>(q), xr = rows<T>(x);
@@ -72,10 +71,10 @@ void fed_joints(const at::Tensor& q_prev, const at::Tensor& pred, const at::Tens
   });
 }
 
-void fed_context(const at::Tensor& phi_src, const at::Tensor& offset, const at::Tensor& psi, const at::Tensor& mean,
-                 int64_t phi_start, const at::Tensor& x) {
-  const int64_t K = x.size(0), B = x.size(1), phi_dim = phi_src.size(2), P = psi.size(2);
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "fed_context", [&] {
+void fed_context(const at::Tensor& phi_src, const Block& offset, const Block& psi, int64_t psi_dim, const Block& mean,
+                 int64_t phi_start, const Block& x) {
+  const int64_t K = phi_src.size(0), B = phi_src.size(1), phi_dim = phi_src.size(2), P = psi_dim;
+  AT_DISPATCH_FLOATING_TYPES(phi_src.scalar_type(), "fed_context", [&] {
     using T = scalar_t;
     const auto src = rows<T>(phi_src), off = rows<T>(offset), ps = rows<T>(psi), mu = rows<T>(mean),
                xr = rows<T>(x);
@@ -91,13 +90,13 @@ void fed_context(const at::Tensor& phi_src, const at::Tensor& offset, const at::
   });
 }
 
-void fed_backward(const at::Tensor& dx, const at::Tensor& gq, const at::Tensor& jac, const at::Tensor& mask_q,
-                  const at::Tensor& mask_g, const at::Tensor& idx, int64_t phi_start, int64_t phi_dim,
-                  int64_t mixtures, int64_t dims, const at::Tensor& gq_new, const at::Tensor& dout) {
-  const int64_t K = dx.size(0), B = dx.size(1);
+void fed_backward(const Block& dx, const Block& gq, const Block& jac, const Block& mask_q, const Block& mask_g,
+                  const Block& idx, int64_t phi_start, int64_t phi_dim, int64_t mixtures, int64_t dims,
+                  const at::Tensor& gq_new, const Block& dout) {
+  const int64_t K = gq_new.size(0), B = gq_new.size(1);
   const auto mq = rows<bool>(mask_q), mg = rows<bool>(mask_g);
   const auto ix = rows<int64_t>(idx);
-  AT_DISPATCH_FLOATING_TYPES(dx.scalar_type(), "fed_backward", [&] {
+  AT_DISPATCH_FLOATING_TYPES(gq_new.scalar_type(), "fed_backward", [&] {
     using T = scalar_t;
     const auto d = rows<T>(dx), g = rows<T>(gq), jr = rows<T>(jac), gn = rows<T>(gq_new), out = rows<T>(dout);
     for (int64_t k = 0; k < K; ++k) {

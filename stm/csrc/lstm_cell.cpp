@@ -6,8 +6,6 @@
 
 #include <ATen/Dispatch.h>
 
-#include <algorithm>
-
 namespace stm_cpp {
 namespace {
 
@@ -23,15 +21,16 @@ void pass1_row(const T* __restrict__ s, const T* __restrict__ cr, T* __restrict_
   for (int64_t j = 0; j < H; ++j) cn[j] = s[H + j] * cr[j] + s[j] * (s[3 * H + j] * T(2) - T(1));
 }
 
-// h = o tanh(c'); gd = [g, c, tanh(c'), 2 i] * s (1 - s) (the local derivatives of the pre-activations);
-// o_dt = o (1 - tanh(c')^2).
-template <typename T>
+// h = o tanh(c') (also into h2 with COPY: a store in the loop is cheaper than a memcpy per row); gd = [g, c,
+// tanh(c'), 2 i] * s (1 - s) (the local derivatives of the pre-activations); o_dt = o (1 - tanh(c')^2).
+template <typename T, bool COPY>
 void pass2_row(const T* __restrict__ s, const T* __restrict__ cr, const T* __restrict__ tr, T* __restrict__ hr,
-               T* __restrict__ d, T* __restrict__ od, int64_t H) {
+               T* __restrict__ h2, T* __restrict__ d, T* __restrict__ od, int64_t H) {
   for (int64_t j = 0; j < H; ++j) {
     const T si = s[j], sf = s[H + j], so = s[2 * H + j], sg = s[3 * H + j];
     const T hv = so * tr[j];
     hr[j] = hv;
+    if (COPY) h2[j] = hv;
     od[j] = so + (-hv) * tr[j];
     d[j] = (sg * T(2) - T(1)) * (si + (-si) * si);
     d[H + j] = cr[j] * (sf + (-sf) * sf);
@@ -77,40 +76,50 @@ Tensor step_buffer(int64_t n, const Tensor& like, int64_t K, int64_t B, int64_t 
 
 }  // namespace
 
+Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options) {
+  return {at::empty(sizes, options), at::empty(sizes, options)};
+}
+
 Tensor rows_ready(const Tensor& t) { return t.stride(-1) == 1 ? t : t.contiguous(); }
 
-void cell_forward(const Tensor& sig, const Tensor& c, const Tensor& c_new, const Tensor& tc, const Tensor& gd,
-                  const Tensor& o_dt, const Tensor& h, const Tensor& h2) {
-  const int64_t K = c.size(0), B = c.size(1), H = c.size(2);
-  AT_DISPATCH_FLOATING_TYPES(sig.scalar_type(), "cell_pass1", [&] {
+void cell_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
+                  const Block& o_dt, const Block& h, const Block& h2) {
+  const int64_t K = tc.size(0), B = tc.size(1), H = tc.size(2);
+  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "cell_pass1", [&] {
     const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), cn = rows<scalar_t>(c_new);
     for (int64_t k = 0; k < K; ++k)
       for (int64_t b = 0; b < B; ++b) pass1_row<scalar_t>(s.at(k, b), cr.at(k, b), cn.at(k, b), H);
   });
   Tensor tanh_c = tc;  // out= takes a mutable handle
   at::tanh_out(tanh_c, c_new);
-  AT_DISPATCH_FLOATING_TYPES(sig.scalar_type(), "cell_pass2", [&] {
+  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "cell_pass2", [&] {
     const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), tr = rows<scalar_t>(tc), hr = rows<scalar_t>(h),
                h2r = rows<scalar_t>(h2), d = rows<scalar_t>(gd), od = rows<scalar_t>(o_dt);
     for (int64_t k = 0; k < K; ++k) {
       for (int64_t b = 0; b < B; ++b) {
-        pass2_row<scalar_t>(s.at(k, b), cr.at(k, b), tr.at(k, b), hr.at(k, b), d.at(k, b), od.at(k, b), H);
-        if (h2r.p != nullptr) std::copy_n(hr.at(k, b), H, h2r.at(k, b));
+        if (h2r.p != nullptr) {
+          pass2_row<scalar_t, true>(s.at(k, b), cr.at(k, b), tr.at(k, b), hr.at(k, b), h2r.at(k, b), d.at(k, b),
+                                    od.at(k, b), H);
+        } else {
+          pass2_row<scalar_t, false>(s.at(k, b), cr.at(k, b), tr.at(k, b), hr.at(k, b), nullptr, d.at(k, b),
+                                     od.at(k, b), H);
+        }
       }
     }
   });
 }
 
-void cell_backward(const Tensor& sig, const Tensor& gd, const Tensor& o_dt, const Tensor& dh_a, const Tensor& dh_b,
-                   const Tensor& gc, const Tensor& dgates, const Tensor& grad_c) {
-  const int64_t K = o_dt.size(0), B = o_dt.size(1), H = o_dt.size(2);
-  AT_DISPATCH_FLOATING_TYPES(sig.scalar_type(), "cell_backward", [&] {
+void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
+                   const Block& gc, const Block& dgates, const Tensor& grad_c) {
+  const int64_t K = grad_c.size(0), B = grad_c.size(1), H = grad_c.size(2);
+  const bool has_gc = gc.data != nullptr, has_dh_b = dh_b.data != nullptr;
+  AT_DISPATCH_FLOATING_TYPES(grad_c.scalar_type(), "cell_backward", [&] {
     using T = scalar_t;
     const auto s = rows<T>(sig), d = rows<T>(gd), od = rows<T>(o_dt), a = rows<T>(dh_a), b = rows<T>(dh_b),
                g = rows<T>(gc), dg = rows<T>(dgates), gr = rows<T>(grad_c);
-    if (gc.defined() && dh_b.defined()) backward_rows<T, true, true>(s, d, od, a, b, g, dg, gr, K, B, H);
-    else if (gc.defined()) backward_rows<T, true, false>(s, d, od, a, b, g, dg, gr, K, B, H);
-    else if (dh_b.defined()) backward_rows<T, false, true>(s, d, od, a, b, g, dg, gr, K, B, H);
+    if (has_gc && has_dh_b) backward_rows<T, true, true>(s, d, od, a, b, g, dg, gr, K, B, H);
+    else if (has_gc) backward_rows<T, true, false>(s, d, od, a, b, g, dg, gr, K, B, H);
+    else if (has_dh_b) backward_rows<T, false, true>(s, d, od, a, b, g, dg, gr, K, B, H);
     else backward_rows<T, false, false>(s, d, od, a, b, g, dg, gr, K, B, H);
   });
 }
@@ -150,16 +159,16 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
   lay.sig = at::baddbmm(b, x, w.narrow(1, 0, I)).view({K, B, n, 4 * H});
   lay.gd = step_buffer(n, x, K, B, 4 * H);
   lay.o_dt = step_buffer(n, x, K, B, H);
-  const auto cells = step_buffer(2, x, K, B, H);
+  const auto cells = block_pair({K, B, H}, x.options());
   const auto tc = at::empty({K, B, H}, x.options());
   Tensor c = rows_ready(c0);
   for (int64_t t = 0; t < n; ++t) {
     auto sig = lay.sig.select(2, t);
     at::baddbmm_out(sig, sig, lay.xh.select(2, t).narrow(-1, I, H), w_h);  // the projection in place
     sig.sigmoid_();
-    auto up = k + 1 < layers.size() ? layers[k + 1].xh.select(2, t).narrow(-1, 0, H) : out.select(2, t);
-    auto next = t + 1 < n ? lay.xh.select(2, t + 1).narrow(-1, I, H) : h_last;
-    cell_forward(sig, c, cells[t % 2], tc, lay.gd[t], lay.o_dt[t], up, next);
+    const Block up = k + 1 < layers.size() ? slice(layers[k + 1].xh, 2, t) : slice(out, 2, t);
+    const Block next = t + 1 < n ? slice(lay.xh, 2, t + 1, I) : Block(h_last);
+    cell_forward(sig, c, cells[t % 2], tc, slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), up, next);
     c = cells[t % 2];
   }
   return c;
@@ -204,14 +213,15 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     Tensor dc = g_c[k].has_value() ? rows_ready(*g_c[k]) : Tensor();
     // d gates straight into the rows of the weight gradient; dh, dc alternating between two blocks each
     const auto dg = at::empty({K, B, n, 4 * H}, opt);
-    const auto dhs = step_buffer(2, dg, K, B, H), dcs = step_buffer(2, dg, K, B, H);
+    auto dhs = block_pair({K, B, H}, opt);
+    const auto dcs = block_pair({K, B, H}, opt);
     for (int64_t t = n - 1; t >= 0; --t) {
-      auto dg_t = dg.select(2, t);
-      cell_backward(lay.sig.select(2, t), lay.gd[t], lay.o_dt[t], dh_rec,
-                    g_out.defined() ? g_out.select(2, t) : Tensor(), dc, dg_t, dcs[t % 2]);
+      const auto dg_t = dg.select(2, t);
+      cell_backward(slice(lay.sig, 2, t), slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), dh_rec,
+                    g_out.defined() ? slice(g_out, 2, t) : Block(), dc, dg_t, dcs[t % 2]);
       dc = dcs[t % 2];
+      at::bmm_out(dhs[t % 2], dg_t, w_hT);
       dh_rec = dhs[t % 2];
-      at::bmm_out(dh_rec, dg_t, w_hT);
     }
     auto dg_rows = dg.view({K, B * n, 4 * H});
     weight_gradient(lay.xh.view({K, B * n, I + H}), dg_rows, dw[k], db[k]);

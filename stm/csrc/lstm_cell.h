@@ -15,23 +15,30 @@
 
 #include <ATen/ATen.h>
 
+#include <array>
 #include <memory>
 #include <tuple>
 #include <vector>
+
+#include "rows.h"
 
 namespace stm_cpp {
 
 using at::Tensor;
 using TensorList = std::vector<Tensor>;
+using Pair = std::array<Tensor, 2>;
 
-// One cell step forward from the gate sigmoids sig (K, B, 4H): c_new, h (and a copy of h in h2 where defined),
-// the saved gd, o_dt; tc is scratch (tanh(c_new)). All are step blocks, written in place.
-void cell_forward(const Tensor& sig, const Tensor& c, const Tensor& c_new, const Tensor& tc, const Tensor& gd,
-                  const Tensor& o_dt, const Tensor& h, const Tensor& h2);
-// One cell step backward: d gates and the gradient of the previous cell state, from dh = dh_a (+ dh_b where
-// defined) and gc (undefined: none). Step blocks, the outputs written in place.
-void cell_backward(const Tensor& sig, const Tensor& gd, const Tensor& o_dt, const Tensor& dh_a, const Tensor& dh_b,
-                   const Tensor& gc, const Tensor& dgates, const Tensor& grad_c);
+// Two contiguous blocks a run of steps alternates between (each step reads one and writes the other).
+Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options);
+
+// One cell step forward from the gate sigmoids sig (K, B, 4H): c_new, h (and a copy of h in h2 where given),
+// the saved gd, o_dt; tc (K, B, H) is scratch (tanh(c_new)). All are step blocks, written in place.
+void cell_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
+                  const Block& o_dt, const Block& h, const Block& h2);
+// One cell step backward: d gates and grad_c (K, B, H), the gradient of the previous cell state, from
+// dh = dh_a (+ dh_b where given) and gc (none: zero). Step blocks, the outputs written in place.
+void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
+                   const Block& gc, const Block& dgates, const Tensor& grad_c);
 // t where its last dimension is contiguous, else a contiguous copy (gradients may come expanded).
 Tensor rows_ready(const Tensor& t);
 

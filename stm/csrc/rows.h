@@ -15,13 +15,45 @@ struct Rows {
   T* at(int64_t k, int64_t b) const { return p + k * sk + b * sb; }
 };
 
-// The rows of t (K, B, X), last dimension contiguous; undefined t: none (p null).
+// Where a step block lies, without a tensor view of it (a view is a heap-allocated TensorImpl: per step and
+// layer, a dozen of them cost more than the loops they feed): a (K, B, X) tensor as it is (undefined: none), or
+// a slice of a buffer of steps (`slice`). It holds no reference: the tensor must outlive it.
+struct Block {
+  void* data = nullptr;
+  at::ScalarType dtype = at::kFloat;
+  int64_t sk = 0, sb = 0;
+
+  Block() = default;
+  Block(const at::Tensor& t) {  // NOLINT(google-explicit-constructor): a tensor is a block as it is
+    if (!t.defined()) return;
+    TORCH_CHECK(t.dim() == 3 && (t.stride(2) == 1 || t.size(2) == 1),
+                "a step block is (K, B, X), its last dimension contiguous");
+    data = t.data_ptr();
+    dtype = t.scalar_type();
+    sk = t.stride(0);
+    sb = t.stride(1);
+  }
+};
+
+// The step block at `index` along `dim` (0, 1 or 2) of a 4-d buffer whose other two leading dimensions are K, B
+// (in that order), from column `col` of its last, contiguous, dimension.
+inline Block slice(const at::Tensor& buf, int64_t dim, int64_t index, int64_t col = 0) {
+  TORCH_CHECK(buf.dim() == 4 && buf.stride(3) == 1 && dim >= 0 && dim < 3 && index >= 0 && index < buf.size(dim) &&
+                  col >= 0 && col < buf.size(3),
+              "slice: a step of a (., ., ., X) buffer");
+  Block b;
+  b.dtype = buf.scalar_type();
+  b.data = static_cast<char*>(buf.data_ptr()) + (index * buf.stride(dim) + col) * buf.element_size();
+  const int64_t first = dim == 0 ? 1 : 0, second = dim == 2 ? 1 : 2;
+  b.sk = buf.stride(first);
+  b.sb = buf.stride(second);
+  return b;
+}
+
 template <typename T>
-Rows<T> rows(const at::Tensor& t) {
-  if (!t.defined()) return {};
-  TORCH_CHECK(t.dim() == 3 && (t.stride(2) == 1 || t.size(2) == 1),
-              "a step block is (K, B, X), its last dimension contiguous");
-  return {t.data_ptr<T>(), t.stride(0), t.stride(1)};
+Rows<T> rows(const Block& b) {
+  TORCH_CHECK(b.data == nullptr || b.dtype == c10::CppTypeToScalarType<T>::value, "a step block of another dtype");
+  return {static_cast<T*>(b.data), b.sk, b.sb};
 }
 
 }  // namespace stm_cpp

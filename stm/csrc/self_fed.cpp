@@ -23,14 +23,18 @@
 #include "lstm_cell.h"
 #include "mdn_nll.h"
 
+using stm_cpp::Block;
+using stm_cpp::block_pair;
 using stm_cpp::cell_backward;
 using stm_cpp::cell_forward;
 using stm_cpp::fed_backward;
 using stm_cpp::fed_context;
 using stm_cpp::fed_joints;
 using stm_cpp::JOINTS;
+using stm_cpp::Pair;
 using stm_cpp::rows_ready;
 using stm_cpp::Sequence;
+using stm_cpp::slice;
 using stm_cpp::Tensor;
 using stm_cpp::TensorList;
 using stm_cpp::weight_gradient;
@@ -117,19 +121,18 @@ Tensor feedback_prediction(const Segment& seg, const Tensor& h_top, const Tensor
 // One step of the stack, bottom layer first (stm.lstm_step._stack_forward), on the segment's buffers: each layer's
 // h goes straight into the next layer's [x, h] of this step (the top's into the block) and into its own [x, h]
 // of the next step (after the last step: into h_last); c alternates between two blocks per layer (cells[k]).
-void stack_step(const Segment& seg, int64_t j, TensorList& c, const TensorList& cells,
-                const Tensor& tc, const Tensor& block, const TensorList& h_last) {
+void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<Pair>& cells, const Tensor& tc,
+                const Tensor& block, const TensorList& h_last) {
   const int64_t L = static_cast<int64_t>(seg.layers.size()), n = static_cast<int64_t>(seg.steps.size());
-  const int64_t H = tc.size(-1);
   for (int64_t k = 0; k < L; ++k) {
     const auto& lay = seg.layers[k];
     auto sig = lay.sig[j];
     at::baddbmm_out(sig, sig, lay.xh.select(1, seg.slot(j)), seg.ws[k]);  // sig holds the bias
     sig.sigmoid_();
-    auto up = k + 1 < L ? seg.layers[k + 1].xh.select(1, seg.slot(j)).narrow(-1, 0, H) : block.select(2, j);
-    auto next = j + 1 < n ? lay.xh.select(1, seg.slot(j + 1)).narrow(-1, lay.inputs, H) : h_last[k];
-    auto c_new = cells[k][j % 2];
-    cell_forward(sig, c[k], c_new, tc, lay.gd[j], lay.o_dt[j], up, next);
+    const Block up = k + 1 < L ? slice(seg.layers[k + 1].xh, 1, seg.slot(j)) : slice(block, 2, j);
+    const Block next = j + 1 < n ? slice(lay.xh, 1, seg.slot(j + 1), lay.inputs) : Block(h_last[k]);
+    const auto& c_new = cells[k][j % 2];
+    cell_forward(sig, c[k], c_new, tc, slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), up, next);
     c[k] = c_new;
   }
 }
@@ -158,9 +161,10 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   seg->layers = segment_layers(ws, bs, h, n);
   const auto block = at::empty({K, B, n, H}, h[0].options());
   const auto tc = at::empty({K, B, H}, h[0].options());
-  TensorList cells(L), h_last(L);
+  std::vector<Pair> cells(L);
+  TensorList h_last(L);
   for (int64_t k = 0; k < L; ++k) {
-    cells[k] = at::empty({2, K, B, H}, h[0].options());
+    cells[k] = block_pair({K, B, H}, h[0].options());
     h_last[k] = at::empty({K, B, H}, h[0].options());
     c[k] = rows_ready(c[k]);
   }
@@ -172,23 +176,25 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   const auto mean_rows = rows_ready(mean).expand({K, B, mean.size(-1)});
   const auto lo = rows_ready(lower).expand({K, B, JOINTS}), hi = rows_ready(upper).expand({K, B, JOINTS});
   const auto psi_rows = rows_ready(psi), offsets = rows_ready(phi_offset);
+  const int64_t P = psi.size(-1);
   Tensor q_prev = rows_ready(q0);
   for (int64_t j = 0; j < n; ++j) {
     Step& st = seg->steps[j];
     const auto pred = feedback_prediction(*seg, j == 0 ? h[L - 1] : block.select(2, j - 1), w_fb, b_fb, st);
     // stm.model.feedback_state, the centred input straight into the bottom layer's [x, h]
-    auto x = seg->layers[0].xh.select(1, seg->slot(j)).narrow(-1, 0, seg->layers[0].inputs);
+    const Block x = slice(seg->layers[0].xh, 1, seg->slot(j));
     const auto q = seg->qs[j];
-    fed_joints(q_prev, pred, lo, hi, mean_rows, q, seg->mask_q[j], x, seg->gripper ? seg->mask_g[j] : Tensor());
+    fed_joints(q_prev, pred, lo, hi, mean_rows, q, slice(seg->mask_q, 0, j), x,
+               seg->gripper ? slice(seg->mask_g, 0, j) : Block());
     if (seg->free_phi) {
-      fed_context(pred.narrow(-1, seg->phi_start, seg->phi_dim), Tensor(), psi_rows.select(2, j), mean_rows,
+      fed_context(pred.narrow(-1, seg->phi_start, seg->phi_dim), Block(), slice(psi_rows, 2, j), P, mean_rows,
                   seg->phi_start, x);
     } else {  // phi = tip + an offset that depends on psi alone (checked on the Python side)
       auto tj = tip_kinematics(q.view({-1, JOINTS}), fk, degree, slots, monomials);
       TORCH_CHECK(tj.second.size(1) == JOINTS, "the tip kinematics' Jacobian: one row per joint");
       st.jac = tj.second.reshape({K, B, JOINTS * 3});
-      fed_context(tj.first.view({K, B, 3}), offsets.select(2, j), psi_rows.select(2, j), mean_rows, seg->phi_start,
-                  x);
+      fed_context(tj.first.view({K, B, 3}), slice(offsets, 2, j), slice(psi_rows, 2, j), P, mean_rows,
+                  seg->phi_start, x);
     }
     stack_step(*seg, j, c, cells, tc, block, h_last);
     q_prev = q;
@@ -198,32 +204,38 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
 
 // The backward of step j of the stack, top layer first (stm.lstm_step._stack_backward): gh, gc in (gc alternating
 // between two blocks per layer, gcs[k]), the gradients of the step's inputs out, and g_top, the gradient of the
-// top h from the block (undefined: none); d gates into the layers' rows dg[k]; returns d x (undefined unless
-// need_x).
-Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, TensorList& gc, const Tensor& g_top,
-                           const TensorList& dg, const TensorList& gcs, bool need_x) {
+// top h from the block (none: zero); d gates into the layers' rows dg[k]; returns the bottom layer's d [x, h],
+// d x in its first columns (undefined unless need_x).
+Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, TensorList& gc, const Block& g_top,
+                           const TensorList& dg, const std::vector<Pair>& gcs, bool need_x) {
   const int64_t L = static_cast<int64_t>(seg.layers.size());
-  Tensor below = g_top;
+  Block below = g_top;  // d h from above: the layer above's d [x, h], its first H columns
+  Tensor dxh, zeros;
   for (int64_t k = L - 1; k >= 0; --k) {
     const auto& lay = seg.layers[k];
-    const int64_t H = lay.o_dt.size(-1), d_in = lay.inputs;
-    Tensor dh_a = gh[k].defined() ? gh[k] : below, dh_b = gh[k].defined() ? below : Tensor();
-    if (!dh_a.defined()) dh_a = at::zeros_like(lay.o_dt[j]);
+    const auto& gc_new = gcs[k][j % 2];
+    const int64_t H = gc_new.size(-1), d_in = lay.inputs;
+    Block dh_a = gh[k].defined() ? Block(gh[k]) : below, dh_b = gh[k].defined() ? below : Block();
+    if (dh_a.data == nullptr) {
+      zeros = at::zeros_like(gc_new);
+      dh_a = zeros;
+    }
     auto dgates = dg[k].select(1, seg.slot(j));
-    auto gc_new = gcs[k][j % 2];
-    cell_backward(lay.sig[j], lay.gd[j], lay.o_dt[j], dh_a, dh_b, gc[k], dgates, gc_new);
+    cell_backward(slice(lay.sig, 0, j), slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), dh_a, dh_b, gc[k], dgates,
+                  gc_new);
     gc[k] = gc_new;
     const auto& w = seg.ws[k];
     if (k > 0 || need_x) {
-      auto dxh = at::bmm(dgates, w.transpose(1, 2));
-      below = dxh.narrow(-1, 0, d_in);
+      dxh = at::bmm(dgates, w.transpose(1, 2));
+      below = dxh;
       gh[k] = dxh.narrow(-1, d_in, H);
     } else {  // a detached input: only the recurrent part
-      below = Tensor();
+      below = Block();
+      dxh = Tensor();
       gh[k] = at::bmm(dgates, w.narrow(1, d_in, H).transpose(1, 2));
     }
   }
-  return below;
+  return dxh;
 }
 
 // Gradients of the segment's inputs from those of its outputs (undefined where none reached them):
@@ -237,28 +249,29 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
   const auto& top = seg->layers[L - 1];
   const int64_t K = top.o_dt.size(1), B = top.o_dt.size(2), H = top.o_dt.size(3);
   const auto opt = top.o_dt.options();
-  TensorList gh(L), gc(L), dg(L), gcs(L);
+  TensorList gh(L), gc(L), dg(L);
+  std::vector<Pair> gcs(L);
   for (int64_t k = 0; k < L; ++k) {
     if (g_h[k].has_value()) gh[k] = rows_ready(*g_h[k]);
     if (g_c[k].has_value()) gc[k] = rows_ready(*g_c[k]);
     dg[k] = at::empty({K, n, B, 4 * H}, opt);  // rows in xh's order
-    gcs[k] = at::empty({2, K, B, H}, opt);
+    gcs[k] = block_pair({K, B, H}, opt);
   }
   const Tensor gb = g_block.has_value() ? rows_ready(*g_block) : Tensor();
   const int64_t outs = seg->w_fb.size(-1);
   const Tensor douts = seg->detach ? Tensor() : at::zeros({K, n, B, outs}, opt);  // the head's, in xh's order
-  const auto gqs = seg->detach ? Tensor() : at::empty({2, K, B, JOINTS}, opt);  // alternating blocks
+  const auto gqs = block_pair({K, B, JOINTS}, opt);
   Tensor gq;  // gradient of the q a step leaves for the next
   for (int64_t j = n - 1; j >= 0; --j) {
-    const auto dx = stack_step_backward(*seg, j, gh, gc, gb.defined() ? gb.select(2, j) : Tensor(), dg, gcs,
+    const auto dxh = stack_step_backward(*seg, j, gh, gc, gb.defined() ? slice(gb, 2, j) : Block(), dg, gcs,
                                         !seg->detach);
     if (seg->detach) continue;
     const auto dout = douts.select(1, seg->slot(j));
     // back through stm.model.feedback_state and the head's component choice (gather)
     const auto& st = seg->steps[j];
-    const auto gq_new = gqs[j % 2];
-    fed_backward(dx, gq, st.jac, seg->mask_q[j], seg->gripper ? seg->mask_g[j] : Tensor(), st.idx, seg->phi_start,
-                 seg->free_phi ? seg->phi_dim : 0, seg->mixtures, seg->dims, gq_new, dout);
+    const auto& gq_new = gqs[j % 2];
+    fed_backward(dxh, gq, st.jac, slice(seg->mask_q, 0, j), seg->gripper ? slice(seg->mask_g, 0, j) : Block(),
+                 st.idx, seg->phi_start, seg->free_phi ? seg->phi_dim : 0, seg->mixtures, seg->dims, gq_new, dout);
     gq = gq_new;
     gh[L - 1] = gh[L - 1] + at::bmm(dout, seg->w_fb.transpose(1, 2));
   }
