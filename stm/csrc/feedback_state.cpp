@@ -54,6 +54,31 @@ void backward_row(const T* dx, const T* gq, const T* jac, const bool* mq, const 
 
 }  // namespace
 
+at::Tensor monomial_products(const at::Tensor& factors, const at::Tensor& index, int64_t degree) {
+  const auto f = factors.contiguous();
+  const auto ix = index.contiguous();
+  TORCH_CHECK(ix.scalar_type() == at::kLong && ix.numel() % degree == 0, "monomial_products: int64 index");
+  const int64_t N = f.size(0), F = f.size(1), S = ix.numel() / degree;
+  auto mono = at::empty({N, S}, f.options());
+  const int64_t* id = ix.data_ptr<int64_t>();
+  for (int64_t i = 0; i < ix.numel(); ++i) {
+    TORCH_CHECK(id[i] >= 0 && id[i] < F, "monomial_products: index out of range");
+  }
+  AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "monomial_products", [&] {
+    using T = scalar_t;
+    for (int64_t r = 0; r < N; ++r) {
+      const T* fr = f.data_ptr<T>() + r * F;
+      T* out = mono.data_ptr<T>() + r * S;
+      for (int64_t s = 0; s < S; ++s) {
+        T p = fr[id[s]];
+        for (int64_t d = 1; d < degree; ++d) p = p * fr[id[d * S + s]];
+        out[s] = p;
+      }
+    }
+  });
+  return mono;
+}
+
 void fed_joints(const Block& q_prev, const at::Tensor& pred, const Block& lower, const Block& upper,
                 const Block& mean, const Block& q, const Block& mask_q, const Block& x, const Block& mask_g) {
   const int64_t K = pred.size(0), B = pred.size(1);

@@ -31,4 +31,9 @@ void fed_backward(const Block& dx, const Block& gq, const Block& jac, const Bloc
                   const Block& idx, int64_t phi_start, int64_t phi_dim, int64_t mixtures, int64_t dims,
                   const at::Tensor& gq_new, const Block& dout);
 
+// The tip kinematics' monomials (stm.fk._slots): mono[r, s] = prod over d < degree of factors[r, index[d * S + s]]
+// (S = index's length / degree), multiplied in d's order as ATen's prod over that dimension does; one loop for
+// factors.index_select(1, index).view(N, degree, S).prod(1).
+at::Tensor monomial_products(const at::Tensor& factors, const at::Tensor& index, int64_t degree);
+
 }  // namespace stm_cpp

@@ -80,7 +80,7 @@ std::pair<Tensor, Tensor> tip_kinematics(const Tensor& q, const TensorList& fk, 
   const auto& row_sums = fk[4];
   const int64_t N = q.size(0);
   auto factors = at::sin(at::addmm(phases, q, signs));
-  auto mono = factors.index_select(1, index).view({N, degree, slots * monomials}).prod(1);
+  auto mono = stm_cpp::monomial_products(factors, index, degree);  // (N, slots * monomials)
   auto entries = at::mm(mono.view({N * slots, monomials}), coef);
   auto out = at::mm(entries.narrow(1, 0, 12) * entries.narrow(1, 12, 12), row_sums).view({N, slots, 3});
   return {out.select(1, 0), out.narrow(1, 1, slots - 1)};
