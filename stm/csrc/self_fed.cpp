@@ -4,13 +4,13 @@
 //
 // Why C++: a self-fed step is ~330 small ATen calls (forward and backward); issued from Python each pays
 // several microseconds of binding and autograd bookkeeping, more than its arithmetic at these sizes. Here the
-// same ATen calls (the LSTM cell's elementwise ones: the same arithmetic in loops) run in the same order on the
-// same shapes, so the forward is that of the Python path (stm.lstm_step, stm.fk, stm.model.feedback_state) and
-// the backward differs only in the order in which a few gradient contributions are summed. The weight gradient is
-// not computed per step: one product per layer and chunk of steps (`weight_gradient`). What the steps write goes
-// into buffers of the whole segment (SegLayer), the products' outputs included (out= calls): no per-step
-// allocations, and the weight gradients' rows are already in place, not gathered by a cat at the end.
-// The LSTM stack itself: lstm_cell.h.
+// same ATen calls (the LSTM cell's and the fed-back state's elementwise ones: the same arithmetic in loops,
+// lstm_cell.h, feedback_state.h) run in the same order on the same shapes, so the forward is that of the Python
+// path (stm.lstm_step, stm.fk, stm.model.feedback_state) and the backward differs only in the order in which a few
+// gradient contributions are summed. The weight gradient is not computed per step: one product per layer and
+// chunk of steps (`weight_gradient`). What the steps write goes into buffers of the whole segment (SegLayer),
+// the products' outputs included (out= calls): no per-step allocations, and the weight gradients' rows are already
+// in place, not gathered by a cat at the end. The LSTM stack itself: lstm_cell.h.
 //
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate
 // columns i, f, o, 2g; b (K, 1, 4H); the feedback head w_fb (K, H, O), b_fb (K, 1, O).
@@ -62,7 +62,7 @@ struct Segment {
   Tensor w_fb;
   std::vector<Step> steps;
   std::vector<SegLayer> layers;
-  Tensor qs;      // the fed-back q per step (n, K, B, JOINTS)
+  Tensor qs;      // the fed-back q per step (n, K, B, JOINTS): the forward's, one block per step
   Tensor mask_q;  // where q_prev + dq was within the joint limits (clamp passes the gradient) (n, K, B, JOINTS)
   Tensor mask_g;  // where the gripper prediction was within [0, 1] (n, K, B, 1)
   int64_t mixtures = 0, dims = 0, phi_start = 0, phi_dim = 0;
