@@ -14,7 +14,9 @@ or SQLite state), and stopped with their main process.
   sees that its holder is gone).
 - Stop (Ctrl-C in the main process): `stop` is set; a busy worker is interrupted (a training
   cell finishes its step and checkpoints there: stm/training/interrupts.py; the cell is marked KILLED,
-  resumable), an idle one exits. Ctrl-C in a terminal reaches the workers too: a worker acts on the
+  resumable), an idle one starts nothing more. No worker exits on its own: one that died would break the
+  pool, and a broken pool terminates the others mid-checkpoint; the main process waits for them all, and
+  its pool's shutdown ends them. Ctrl-C in a terminal reaches the workers too: a worker acts on the
   first interrupt only, so the second (the main process's) cannot cut its checkpoint short. A worker
   still busy GRACE seconds after the stop exits anyway.
 """
@@ -110,23 +112,29 @@ def _child_thread_env() -> None:
 def _on_sigint(signum, frame) -> None:
     if _stopping.is_set():
         return  # interrupted already: the cell is checkpointing, and a second interrupt would cut that short
+    _stopping.set()
     if _busy.is_set():
-        _stopping.set()
         raise KeyboardInterrupt  # the running cell or trial records the interruption
-    os._exit(130)
+    # idle: stay, and start nothing more (_call); the pool's shutdown ends this process. Exiting here would break
+    # the pool, and a broken pool terminates every other worker, however far its checkpoint has got
 
 
 def _watch(parent: int, stop) -> None:
+    stopped = False
     while True:
         if os.getppid() != parent:  # reparented: the main process is gone
             os._exit(1)
-        if stop.is_set():
+        if stop.is_set() and not stopped:
+            stopped = True
             if _busy.is_set() and not _stopping.is_set():
-                _thread.interrupt_main()  # runs _on_sigint in the main thread
+                _thread.interrupt_main()  # runs _on_sigint in the main thread (which marks the worker stopping)
+            else:
+                _stopping.set()
             deadline = time.monotonic() + GRACE
-            while _busy.is_set() and time.monotonic() < deadline:  # _call exits once the cell has recorded it
+            while _busy.is_set() and time.monotonic() < deadline:  # _call returns once the cell has recorded it
                 time.sleep(POLL)
-            os._exit(130)
+            if _busy.is_set():  # stuck past the grace period: leave anyway
+                os._exit(130)
         time.sleep(POLL)
 
 
@@ -153,11 +161,14 @@ def _init(parent: int, stop) -> None:
 
 
 def _call(fn: Callable, *args):
+    """fn(*args) in a worker; once the worker has been interrupted, nothing more starts. An interruption reaches
+    the main process as the future's KeyboardInterrupt (fn has recorded it), the worker staying alive: the pool
+    stays whole, so the other workers finish their checkpoints (see the module docstring)."""
+    if _stopping.is_set():
+        raise KeyboardInterrupt
     _busy.set()
     try:
         return fn(*args)
-    except KeyboardInterrupt:  # already recorded by fn; leave now, quietly
-        os._exit(130)
     finally:
         _busy.clear()
 
