@@ -80,8 +80,8 @@ def measure(args: argparse.Namespace) -> dict:
     for arm in arms:
         arm["speedup"] = round(arm["model_iterations_per_s"] / base, 3)
     return {"profile": args.profile, "tasks": args.tasks, "variants": args.variants, "seeds": args.seeds,
-            "iters": args.iters, "threads_per_process": training_threads(), "cpus": usable_cores(), "load_before": os.getloadavg()[0],
-            "arms": arms}
+            "iters": args.iters, "threads_per_process": training_threads(), "cpus": usable_cores(),
+            "load_before": os.getloadavg()[0], "arms": arms}
 
 
 def main(args: argparse.Namespace) -> int:

@@ -22,7 +22,8 @@ single and packed, recorded and replayed alone in fp32 and in bf16, timed in the
 per model-iteration / its fp32 floor; floor_ratio_warm the same over the warm replay (operands in cache: a
 lower bound under the floor). The training iterations run with subnormal floats flushed to zero, as
 stm.training.loop trains; --weights CHECKPOINT also times a pack of a trained checkpoint's copies with them
-flushed and kept (stm.speed.trained: on a peaked mixture head the difference is large). The tip kinematics of the fed-back state (stm.fk) against
+flushed and kept (stm.speed.trained: on a peaked mixture head the difference is large). The tip kinematics
+of the fed-back state (stm.fk) against
 pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
 3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an
 evaluation cell's).
@@ -56,6 +57,7 @@ from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.speed.bench_inputs import BenchTask, PlainMDN, bench_demos
 from stm.speed.floor import record_matmuls, replayer
+from stm.speed.summary import summary
 from stm.speed.trained import trained_weights_bench
 from stm.training.autoconditioning import unroll
 from stm.training.batches import DemoTensors
@@ -371,39 +373,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.json:
         print(json.dumps(result, indent=1))
     else:
-        print(f"torch {result['torch']}, {result['threads']} thread(s), load {load_before[0]:.1f}")
-        for r in result["training"]:
-            ms = r["ms_per_iter"]
-            print(f"{r['size']:>10} (3x{r['hidden']}, {r['mixtures']} Gaussians, batch {r['batch']}, "
-                  f"{r['steps']} steps, D={r['state_dim']}): "
-                  + ", ".join(f"{k} {v:.1f} ms" for k, v in ms.items())
-                  + f" | ac2/tf {r['ratio_ac_u2v2_over_tf']:.2f}, ac5/tf {r['ratio_ac_u5v5_over_tf']:.2f},"
-                  f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
-                  f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f} | windows of {r['window']} "
-                  f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
-            print(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16/warm: "
-                  + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}/{v['warm']:.1f}"
-                              for k, v in r["floor_ms_per_model_iter"].items())
-                  + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
-                  + " | warm " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio_warm"].items())
-                  + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
-        if "trained_weights" in result:
-            tw = result["trained_weights"]
-            print(f"{tw['checkpoint']} ({tw['task']}, iteration {tw['iteration']}, {tw['head']} head, u={tw['u']} "
-                  f"v={tw['v']}, {tw['step_kernel']}): pack of {tw['packed_k']} "
-                  f"{tw['ms_per_iter']['flushed']:.1f} ms per iteration with subnormals flushed, "
-                  f"{tw['ms_per_iter']['ieee']:.1f} ms kept: x{tw['subnormal_slowdown']:.2f}")
-        if "fk" in result:
-            fk = result["fk"]
-            us, calls = fk["us_per_call"], fk["aten_calls"]
-            print("tip FK, us per call, closed form / pytorch-kinematics (ATen calls): " + ", ".join(
-                f"{n} (batch {b}) {us[n]['closed_form']:.0f}/{us[n]['pytorch_kinematics']:.0f}"
-                f" ({calls[n]['closed_form']}/{calls[n]['pytorch_kinematics']})" for n, b in fk["batch"].items()))
-        if "rollouts" in result:
-            ro = result["rollouts"]
-            print(f"rollouts: {ro['rollouts']} x {ro['steps']} steps with FK grounding in {ro['seconds']:.2f} s; "
-                  f"{ro['packed_k']} models batched {ro['packed_seconds']:.2f} s, one after the other "
-                  f"{ro['separate_seconds']:.2f} s")
+        print(summary(result))
     return result
 
 
