@@ -86,6 +86,16 @@ def _time_once(fn, reps: int) -> float:
     return (_clock() - start) / reps
 
 
+def interleaved_medians(cases: dict, rounds: int, reps: int) -> dict:
+    """Each case's median seconds per call over `rounds` rounds, every round timing every case in turn (so a load
+    change hits every case alike)."""
+    times: dict = {k: [] for k in cases}
+    for _ in range(rounds):
+        for k, fn in cases.items():
+            times[k].append(_time_once(fn, reps))
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
 def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK, state: dict | None = None):
     """A training-iteration factory for a pack of k models (each its own seed's init, or each a copy of the weights
     `state` (normalisation included); one model is a pack of one, as stm.training.loop trains it), every model on
@@ -199,11 +209,7 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         cases[f"floor_fp32_{k}"], cases[f"floor_bf16_{k}"] = replayer(calls, device=_device), \
             replayer(calls, torch.bfloat16, _device)
         cases[f"floor_warm_{k}"] = replayer(calls, device=_device, warm=True)
-    times: dict[str, list[float]] = {k: [] for k in cases}
-    for _ in range(rounds):  # interleaved, so a load change hits every case alike
-        for k, fn in cases.items():
-            times[k].append(_time_once(fn, reps))
-    med = {k: statistics.median(v) for k, v in times.items()}
+    med = interleaved_medians(cases, rounds, reps)
     per_model = {k: med[k] / (PACK if "packed" in k else 1) for k in med}  # floors too
     share = matmul_share(cases["ac_u5v5"])
     speedup = {k: round(PACK * med[k] / med[f"packed_{k}"], 3) for k in ("tf", "ac_u2v2", "ac_u5v5")}
@@ -357,12 +363,12 @@ def main(argv: list[str] | None = None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
+    with subnormals_flushed():  # as stm.training.loop trains
+        training = [training_bench(s, args.rounds, args.reps) for s in args.sizes]
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
               "clock": args.clock, "device": str(_device),
               "load_average_before": [round(x, 2) for x in load_before],
-              "training": []}
-    with subnormals_flushed():  # as stm.training.loop trains
-        result["training"] = [training_bench(s, args.rounds, args.reps) for s in args.sizes]
+              "training": training}
     if args.weights is not None:
         result["trained_weights"] = trained_weights_bench(args.weights, args.rounds, args.reps)
     if not args.no_fk:

@@ -4,29 +4,28 @@ from __future__ import annotations
 
 
 def summary(result: dict) -> str:
-    lines: list[str] = []
-    lines.append(f"torch {result['torch']}, {result['threads']} thread(s), load {result['load_average_before'][0]:.1f}")
+    lines = [f"torch {result['torch']}, {result['threads']} thread(s), load {result['load_average_before'][0]:.1f}"]
     for r in result["training"]:
         ms = r["ms_per_iter"]
         lines.append(f"{r['size']:>10} (3x{r['hidden']}, {r['mixtures']} Gaussians, batch {r['batch']}, "
-              f"{r['steps']} steps, D={r['state_dim']}): "
-              + ", ".join(f"{k} {v:.1f} ms" for k, v in ms.items())
-              + f" | ac2/tf {r['ratio_ac_u2v2_over_tf']:.2f}, ac5/tf {r['ratio_ac_u5v5_over_tf']:.2f},"
-              f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
-              f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f} | windows of {r['window']} "
-              f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
+                     f"{r['steps']} steps, D={r['state_dim']}): "
+                     + ", ".join(f"{k} {v:.1f} ms" for k, v in ms.items())
+                     + f" | ac2/tf {r['ratio_ac_u2v2_over_tf']:.2f}, ac5/tf {r['ratio_ac_u5v5_over_tf']:.2f},"
+                     f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
+                     f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f} | windows of {r['window']} "
+                     f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
         lines.append(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16/warm: "
-              + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}/{v['warm']:.1f}"
-                          for k, v in r["floor_ms_per_model_iter"].items())
-              + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
-              + " | warm " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio_warm"].items())
-              + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
+                     + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}/{v['warm']:.1f}"
+                                 for k, v in r["floor_ms_per_model_iter"].items())
+                     + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
+                     + " | warm " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio_warm"].items())
+                     + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
     if "trained_weights" in result:
         tw = result["trained_weights"]
         lines.append(f"{tw['checkpoint']} ({tw['task']}, iteration {tw['iteration']}, {tw['head']} head, u={tw['u']} "
-              f"v={tw['v']}, {tw['step_kernel']}): pack of {tw['packed_k']} "
-              f"{tw['ms_per_iter']['flushed']:.1f} ms per iteration with subnormals flushed, "
-              f"{tw['ms_per_iter']['ieee']:.1f} ms kept: x{tw['subnormal_slowdown']:.2f}")
+                     f"v={tw['v']}, {tw['step_kernel']}): pack of {tw['packed_k']} "
+                     f"{tw['ms_per_iter']['flushed']:.1f} ms per iteration with subnormals flushed, "
+                     f"{tw['ms_per_iter']['ieee']:.1f} ms kept: x{tw['subnormal_slowdown']:.2f}")
     if "fk" in result:
         fk = result["fk"]
         us, calls = fk["us_per_call"], fk["aten_calls"]
@@ -36,6 +35,6 @@ def summary(result: dict) -> str:
     if "rollouts" in result:
         ro = result["rollouts"]
         lines.append(f"rollouts: {ro['rollouts']} x {ro['steps']} steps with FK grounding in {ro['seconds']:.2f} s; "
-              f"{ro['packed_k']} models batched {ro['packed_seconds']:.2f} s, one after the other "
-              f"{ro['separate_seconds']:.2f} s")
+                     f"{ro['packed_k']} models batched {ro['packed_seconds']:.2f} s, one after the other "
+                     f"{ro['separate_seconds']:.2f} s")
     return "\n".join(lines)

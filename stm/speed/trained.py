@@ -9,7 +9,6 @@ stm.training.loop trains) and kept (IEEE), interleaved round by round: subnormal
 
 from __future__ import annotations
 
-import statistics
 from pathlib import Path
 
 import torch
@@ -43,11 +42,7 @@ def trained_weights_bench(path: Path, rounds: int, reps: int) -> dict:
     cases = {"flushed": mode(True), "ieee": mode(False)}
     for fn in cases.values():  # warm-up
         fn()
-    times: dict[str, list[float]] = {k: [] for k in cases}
-    for _ in range(rounds):
-        for k, fn in cases.items():
-            times[k].append(bench._time_once(fn, reps))
-    med = {k: statistics.median(v) for k, v in times.items()}
+    med = bench.interleaved_medians(cases, rounds, reps)
     return {"checkpoint": Path(path).name, "task": ckpt["task"], "iteration": int(ckpt["iteration"]),
             "head": model_cfg.head, "u": train_cfg.u, "v": train_cfg.v, "step_kernel": train_cfg.step_kernel,
             "packed_k": bench.PACK, "batch": int(batch.states.shape[0]), "steps": int(batch.mask.shape[1]),
