@@ -31,7 +31,7 @@ from experiments.cell_run import (
     test_signal,
 )
 from experiments.cells import Cell
-from experiments.runtime.claims import Beat, Claimed, acquire, claimed_cell, holder_id, log_headline
+from experiments.runtime.claims import Beat, Claimed, acquire, claimed_cell, holder_id, settle_finished
 from experiments.runtime.tracking import Client
 
 log = logging.getLogger(__name__)
@@ -80,8 +80,7 @@ def run_unit(cells: list[Cell], run_ids: list[str], uri: str, progress: bool, le
         for b in beats:
             b.release()
     for i, res in zip(mine, results, strict=True):
-        if res.status == "FINISHED":
-            log_headline(client, res.run_id, cells[i].task, res.metrics)
+        settle_finished(client, res.run_id, cells[i].task, res)
         got[i] = Claimed("ran", res)
     if wait:  # cells another process holds: wait for each (it trains alone if that process died)
         got = [claimed_cell(c, uri, run_id, progress, level, threads, beat, grace, True)

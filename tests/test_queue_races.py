@@ -149,3 +149,80 @@ def test_other_errors_of_a_worker_still_stop_it(tmp_path):
 
     with pytest.raises(ValueError, match="Cannot parse"):
         drain(study, run_one, poll=0.1)
+
+
+def test_a_stale_trial_is_requeued_even_when_one_of_its_runs_cannot_be_marked(store, tmp_path):
+    from experiments.runtime.optuna_storage import RetryDeadTrial
+
+    uri, client, exp = store
+    dead = client.create_run(exp).info.run_id
+    _claimed(client, dead, 1, f"{HOST}:{_dead_pid()}:gone")
+    study = _queue(tmp_path)
+    trial = study.ask()
+    trial.set_user_attr("mlflow_run_ids", ["0" * 32, dead])  # the first: no such run (the store refuses it)
+    frozen = study._storage.get_trial(trial._trial_id)
+
+    RetryDeadTrial(max_retry=3, uri=uri, grace=60)(study, frozen)
+
+    assert client.get_run(dead).info.status == "FAILED"
+    assert [t.state.name for t in study.get_trials(deepcopy=False)
+            if t.system_attrs.get("failed_trial") == trial.number] == ["WAITING"]
+
+
+def test_only_cells_ended_by_their_own_error_or_finished_count_as_settled(store):
+    from experiments.runtime.cell_queue import unsettled_hashes
+
+    uri, client, exp = store
+    parent = client.create_run(exp).info.run_id
+
+    def cell_run(config_hash: str, status: str | None, beat: str | None = None) -> None:
+        run_id = client.create_run(exp, tags={"mlflow.parentRunId": parent, "config_hash": config_hash}).info.run_id
+        _claimed(client, run_id, 1, f"elsewhere:7:{config_hash}", beat)
+        if status:
+            client.set_terminated(run_id, status)
+
+    cell_run("finished", "FINISHED", "1:done")
+    cell_run("own-error", "FAILED", "1:done")  # its holder gave up the claim: the cell's own failure
+    cell_run("queue-failed", "FAILED", "1:100")  # failed by the queue for a holder that stopped beating
+    cell_run("running", None)  # its entry ended while its holder went on (or was killed)
+    cell_run("killed", "KILLED", "1:done")
+
+    hashes = ["finished", "own-error", "queue-failed", "running", "killed", "never-run"]
+    assert unsettled_hashes(client, exp, parent, hashes) == ["queue-failed", "running", "killed", "never-run"]
+
+
+def test_the_last_worker_out_runs_what_the_queue_lost_before_it_stops(tmp_path):
+    from experiments.runtime.optuna_storage import drain
+
+    study = _queue(tmp_path)
+    lost = ["cell-a"]  # no entry holds it: found by refill once the queue is empty
+    ran: list[str] = []
+
+    def refill() -> int:
+        for cell in lost:
+            study.enqueue_trial({}, user_attrs={"cell": cell})
+        n, lost[:] = len(lost), []
+        return n
+
+    def objective(trial) -> float:
+        ran.append(trial.user_attrs["cell"])
+        return 0.0
+
+    drain(study, lambda: study.optimize(objective, n_trials=1, catch=(Exception,)), poll=0.1, refill=refill)
+
+    assert ran == ["cell-a"]
+
+
+def test_a_holders_finished_result_stands_over_the_queues_late_failure(store):
+    from experiments.cell_run import CellResult
+    from experiments.runtime.claims import settle_finished
+
+    uri, client, exp = store
+    run_id = client.create_run(exp).info.run_id
+    client.set_terminated(run_id, "FAILED")  # the queue, reading a stale beat just as this process finished
+
+    settle_finished(client, run_id, "reacher", CellResult("reacher/lstm/seed0", run_id, "FINISHED",
+                                                          metrics={"reacher/success_rate": 0.5}))
+
+    run = client.get_run(run_id)
+    assert run.info.status == "FINISHED" and run.data.metrics["success_rate"] == 0.5

@@ -10,7 +10,10 @@ artifact) and beats a heartbeat meanwhile. A cell whose worker stops beating for
 (`sweep.max_retry` times); the retry resumes the same MLflow run from its checkpoint. Every
 worker enqueues the cells that are neither FINISHED nor queued; duplicates from workers that
 started at the same moment are skipped when popped. A worker stops when nothing is WAITING or
-RUNNING, so the last one out writes a complete summary. We keep no scheduler of our own.
+RUNNING, so the last one out writes a complete summary; before it stops it checks the queue
+against MLflow, and queues again any cell that neither FINISHED nor failed by its own error (an
+entry whose re-queue was lost with the worker that failed it as stale). We keep no scheduler of
+our own.
 
 With `--pack K` (default: all seeds) an entry holds up to K seeds of one cell group, which the
 worker that pops it trains as one packed job (experiments/pack.py): the entry is the unit, so
@@ -23,11 +26,13 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 
 from experiments.ablation import EXPERIMENT, StudyOutcome, finish_parent, prepare_runs
 from experiments.cell_run import CellResult
 from experiments.cells import Cell, build_cells
 from experiments.pack import pack_units, run_unit
+from experiments.runtime.claims import released
 from experiments.runtime.optuna_storage import describe, drain, open_storage, trials_in, worker_id
 from experiments.runtime.processes import training_threads, worker_pool
 from experiments.runtime.schedule import prepare_datasets
@@ -84,6 +89,41 @@ def enqueue_missing(study, cells: list[Cell], finished: set[str], pack: int = 1)
 def finished_hashes(client: Client, experiment_id: str, parent_id: str) -> set[str]:
     return {r.data.tags.get("config_hash", "") for r in child_runs(client, experiment_id, parent_id)
             if r.info.status == "FINISHED"}
+
+
+def latest_runs(client: Client, experiment_id: str, parent_id: str) -> dict[str, object]:
+    """Each cell's newest run in the study, by config hash."""
+    latest: dict[str, object] = {}
+    for run in sorted(child_runs(client, experiment_id, parent_id), key=lambda r: r.info.start_time):
+        latest[run.data.tags.get("config_hash", "")] = run
+    return latest
+
+
+def unsettled_hashes(client: Client, experiment_id: str, parent_id: str, hashes: list[str]) -> list[str]:
+    """The cells that neither FINISHED nor failed by their own error (a FAILED run whose holder gave up
+    its claim): never run, still RUNNING, KILLED, or FAILED by the queue for a holder that stopped beating.
+    Asked once the queue is empty, these are cells whose entries ended without them: a stale entry's
+    re-queue lost with the process that failed it, or a live holder's entry failed as stale and its
+    holder killed later."""
+    latest = latest_runs(client, experiment_id, parent_id)
+    return [h for h in hashes if (run := latest.get(h)) is None or not (
+        run.info.status == "FINISHED" or (run.info.status == "FAILED" and released(run)))]
+
+
+def _refill(study, cfg: StudyConfig, cells: dict[str, Cell], client: Client, experiment_id: str,
+            parent_id: str, requeued: Counter):
+    """drain's refill for the cell queue: queue the unsettled cells again, each at most
+    `sweep.max_retry` times by this worker (the claims keep a cell from training twice)."""
+    def refill() -> int:
+        lost = [h for h in unsettled_hashes(client, experiment_id, parent_id, list(cells))
+                if requeued[h] < cfg.sweep.max_retry]
+        if lost:
+            log.warning("the queue is empty but %d cell(s) are not settled: queued again: %s", len(lost),
+                        ", ".join(cells[h].key for h in lost))
+            requeued.update(lost)
+        return enqueue_missing(study, [cells[h] for h in lost], set(), cfg.pack)
+
+    return refill
 
 
 def _cell_objective(cfg: StudyConfig, cells: dict[str, Cell], client: Client, uri: str, experiment_id: str,
@@ -147,7 +187,8 @@ def _work(cfg_dict: dict, queue_url: str, uri: str, experiment_id: str, parent_i
     ran: list[CellResult] = []
     objective = _cell_objective(cfg, cells, client, uri, experiment_id, parent_id, level, ran)
     # dead workers' cells go back to WAITING and are taken like the others
-    drain(study, lambda: study.optimize(objective, n_trials=1, catch=(Exception,)), cfg.sweep.heartbeat, "cell")
+    drain(study, lambda: study.optimize(objective, n_trials=1, catch=(Exception,)), cfg.sweep.heartbeat, "cell",
+          _refill(study, cfg, cells, client, experiment_id, parent_id, Counter()))
     return ran
 
 
@@ -188,9 +229,7 @@ def run_worker(cfg: StudyConfig, queue_url: str | None = None) -> StudyOutcome:
         client.set_terminated(parent_id, "KILLED")
         raise
     # the study as a whole (all workers): the latest run of each cell
-    latest: dict[str, object] = {}
-    for run in sorted(child_runs(client, experiment_id, parent_id), key=lambda r: r.info.start_time):
-        latest[run.data.tags.get("config_hash", "")] = run
+    latest = latest_runs(client, experiment_id, parent_id)
     mine = {r.run_id for r in ran}
     for cell in cells:
         run = latest.get(cell.config_hash)

@@ -178,9 +178,21 @@ def claimed_cell(cell: Cell, uri: str, run_id: str, progress: bool, level: int, 
         res = run_cell(cell, uri, run_id, progress, level, threads)
     finally:
         beater.release()
-    if res.status == "FINISHED":
-        log_headline(client, run_id, cell.task, res.metrics)
+    settle_finished(client, run_id, cell.task, res)
     return Claimed("ran", res)
+
+
+def settle_finished(client: Client, run_id: str, task: str, res) -> None:
+    """After the claim's release: a FINISHED result stands (the queue may have marked the run FAILED
+    meanwhile, for a beat that came late while this process worked: experiments/runtime/optuna_storage.py),
+    and its headline metrics are logged."""
+    if res.status != "FINISHED":
+        return
+    if client.get_run(run_id).info.status != "FINISHED":
+        log.warning("run %s was marked FAILED while this process finished it (a late beat); FINISHED stands",
+                    run_id)
+        client.set_terminated(run_id, "FINISHED")
+    log_headline(client, run_id, task, res.metrics)
 
 
 def log_headline(client: Client, run_id: str, task: str, metrics: dict[str, float]) -> None:

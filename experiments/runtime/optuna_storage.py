@@ -135,7 +135,10 @@ class RetryDeadTrial:
         # the runs first: a worker that pops the re-queued trial must not find its fresh claim overruled
         # a queue entry of a packed cell group holds several runs (experiments/runtime/cell_queue.py)
         for run_id in frozen.user_attrs.get("mlflow_run_ids") or [frozen.user_attrs.get("mlflow_run_id")]:
-            self._fail_run(run_id, frozen)
+            try:
+                self._fail_run(run_id, frozen)
+            except Exception:  # e.g. the tracking server unreachable a moment: the re-queue below matters more
+                log.exception("trial %d: could not mark run %s FAILED", frozen.number, run_id)
         self.retry(study, frozen)
 
     def _fail_run(self, run_id: str | None, frozen) -> None:
@@ -156,10 +159,12 @@ class RetryDeadTrial:
         client.set_terminated(run_id, "FAILED")
 
 
-def drain(study, run_one: Callable[[], None], poll: float, what: str = "trial") -> None:
+def drain(study, run_one: Callable[[], None], poll: float, what: str = "trial",
+          refill: Callable[[], int] | None = None) -> None:
     """The loop every worker ends with (RDB storages): fail the trials of dead workers (they are
     re-queued as WAITING), run WAITING ones one at a time with `run_one`, and return once no
-    trial is WAITING or RUNNING, so that the last worker out sees the whole study."""
+    trial is WAITING or RUNNING and `refill` (the queue's own check against what it should hold)
+    queues nothing more, so that the last worker out sees the whole study."""
     announced = False
     while True:
         fail_dead_trials(study)
@@ -174,6 +179,8 @@ def drain(study, run_one: Callable[[], None], poll: float, what: str = "trial") 
             continue
         running = trials_in(study, "RUNNING")
         if not running:
+            if refill is not None and refill():
+                continue
             return
         if not announced:
             log.info("waiting for %d %s(s) held by other workers: %s", len(running), what,
