@@ -11,9 +11,18 @@ them; deferring all rows to one product after the unroll, as the Python steps do
 
 TrainConfig.step_kernel = "cpp" selects it where it applies: an MDN head feeding back component_mean or a
 deterministic head; phi fed back free, or grounded where the task's phi is the tip plus a function of psi
-(checked on the batch); the inputs not requested back; float32 products (train.matmul_dtype). Elsewhere,
-and where the extension cannot be built (stm.cpp_ext warns once), the Python steps run.
-tests/test_stm_self_fed.py holds it to the Python path.
+(checked on the batch); the inputs not requested back. Elsewhere, and where the extension cannot be built
+(stm.cpp_ext warns once), the Python steps run. tests/test_stm_self_fed.py holds it to the Python path.
+
+With bf16 products (train.matmul_dtype "bfloat16", float32 weights) the segment's and the layer sequence's
+products, forward, backward and weight gradients, take bf16 operands, the weights cast once per unroll (the
+stepper's casts, and the feedback head's rows here), and give float32, as stm.lstm_step's do; the state, gate
+maths, fed-back state and kinematics stay float32. Where libtorch carries MKL's bf16 x bf16 -> float32 GEMM
+(x86) the C++ products take it: unlike the Python path's ATen bf16 products, no bf16 rounding of the products'
+outputs and the biases added in float32 (and the feedback head's weight gradient summed in float32 per segment,
+where autograd sums the Python path's per-step bf16 ones in bf16); the ground-truth chunks of one model run bf16
+products too, where the Python path calls oneDNN's float32 fused layer. tests/test_stm_self_fed.py holds it to
+the Python bf16 path within bf16's rounding.
 """
 
 from __future__ import annotations
@@ -30,8 +39,8 @@ JOINTS = 7
 
 def supported(view: PackView, cfg: TrainConfig, return_inputs: bool = False) -> bool:
     """Whether the C++ segment may run this unroll's self-fed steps (before the task and kinematics checks)."""
-    return (cfg.step_kernel == "cpp" and cfg.v > 0 and not return_inputs and cfg.matmul_dtype == "float32"
-            and (not view.is_mdn or cfg.feedback == "component_mean"))
+    return (cfg.step_kernel == "cpp" and cfg.v > 0 and not return_inputs
+            and cfg.matmul_dtype in ("float32", "bfloat16") and (not view.is_mdn or cfg.feedback == "component_mean"))
 
 
 def _phi_offset(task, psi: torch.Tensor, dtype: torch.dtype) -> torch.Tensor | None:
@@ -71,12 +80,12 @@ class _Segment(torch.autograd.Function):
     hidden states (K, B, n, H) and the per-layer h, c after the last step."""
 
     @staticmethod
-    def forward(ctx, consts: _Constants, q0, psi, offset, w_fb, b_fb, *hc_wb):
+    def forward(ctx, consts: _Constants, low: list[torch.Tensor], q0, psi, offset, w_fb, b_fb, *hc_wb):
         L = consts.layers
         h, c, wb = list(hc_wb[:L]), list(hc_wb[L: 2 * L]), hc_wb[2 * L:]
         block, h, c, seg = self_fed_extension().segment_forward(
             h, c, list(wb[0::2]), list(wb[1::2]), w_fb, b_fb, q0, psi, offset, consts.mean, consts.lower,
-            consts.upper, consts.fk, consts.ints)
+            consts.upper, consts.fk, consts.ints, low)
         ctx.seg = seg
         ctx.set_materialize_grads(False)
         return (block, *h, *c)
@@ -88,7 +97,7 @@ class _Segment(torch.autograd.Function):
         dh, dc, dw_fb, db_fb, dw, db = self_fed_extension().segment_backward(ctx.seg, g_block, list(g_hc[:L]),
                                                                               list(g_hc[L:]))
         ctx.seg = None
-        return (None, None, None, None, dw_fb, db_fb, *dh, *dc, *_interleave(dw, db))
+        return (None, None, None, None, None, dw_fb, db_fb, *dh, *dc, *_interleave(dw, db))
 
 
 class _Sequence(torch.autograd.Function):
@@ -96,9 +105,10 @@ class _Sequence(torch.autograd.Function):
     the per-layer h, c after the last step. The inputs get no gradient (ground truth)."""
 
     @staticmethod
-    def forward(ctx, layers: int, recurrent, x, *hc_wb):
+    def forward(ctx, layers: int, recurrent, low: list[torch.Tensor], x, *hc_wb):
         h, c, wb = list(hc_wb[:layers]), list(hc_wb[layers: 2 * layers]), hc_wb[2 * layers:]
-        out, h, c, seq = self_fed_extension().sequence_forward(x, h, c, list(wb[0::2]), list(wb[1::2]), *recurrent)
+        out, h, c, seq = self_fed_extension().sequence_forward(x, h, c, list(wb[0::2]), list(wb[1::2]), *recurrent,
+                                                               low)
         ctx.seq = seq
         ctx.set_materialize_grads(False)
         return (out, *h, *c)
@@ -109,23 +119,31 @@ class _Sequence(torch.autograd.Function):
         L = len(g_hc) // 2
         dh, dc, dw, db = self_fed_extension().sequence_backward(ctx.seq, g_out, list(g_hc[:L]), list(g_hc[L:]))
         ctx.seq = None
-        return (None, None, None, *dh, *dc, *_interleave(dw, db))
+        return (None, None, None, None, *dh, *dc, *_interleave(dw, db))
 
 
 class CppSteps:
     """An unroll's steps after the first chunk in C++: `known` runs ground-truth chunks, `self_fed` self-fed
-    segments; both on the unroll's stepper's weights (w (K, I + H, 4H) with the gate columns i, f, o, 2g)."""
+    segments; both on the unroll's stepper's weights (w (K, I + H, 4H) with the gate columns i, f, o, 2g). With
+    bf16 products (the stepper's store has a dtype) the products take the weights cast once per unroll: the
+    stepper's w per layer (`low_w`), and the feedback head's w_fb here (first in `low_fb`)."""
 
     def __init__(self, consts: _Constants, stepper, psi: torch.Tensor, offset: torch.Tensor, w_fb, b_fb):
         self.consts, self.stepper, self.psi, self.offset = consts, stepper, psi, offset
         self.w_fb, self.b_fb = w_fb, b_fb
         self.layers = stepper.layers
         self._recurrent: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+        dt = stepper.store.dtype
+        self.low_w = list(stepper.store.low[0::2]) if dt is not None else []
+        self.low_fb = [w_fb.detach().to(dt), *self.low_w] if dt is not None else []
 
     def recurrent(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Per layer the recurrent rows of w (K, H, 4H) and their transpose (K, 4H, H), contiguous: copied once per
         unroll for all its ground-truth chunks (the weights are transposed views; the gradients are the chunks')."""
         if self._recurrent is None:
+            if self.low_w:  # bf16 products read the cast weights as they are
+                self._recurrent = ([], [])
+                return self._recurrent
             with torch.no_grad():
                 ws = [w.detach() for w in self.stepper.wb[0::2]]
                 H = ws[0].shape[-1] // 4
@@ -140,12 +158,12 @@ class CppSteps:
     def known(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]):
         """Centred known inputs (K, B, n, D) from per-layer h, c -> (top hidden states (K, B, n, H), h, c)."""
         st = self.stepper
-        return self._split(_Sequence.apply(self.layers, self.recurrent(), x, *h, *c, *st.wb))
+        return self._split(_Sequence.apply(self.layers, self.recurrent(), self.low_w, x, *h, *c, *st.wb))
 
     def self_fed(self, h: list[torch.Tensor], c: list[torch.Tensor], q0: torch.Tensor, t: int, n: int):
         """n self-fed steps from input step t, q (K, B, 7) before them -> (top hidden states (K, B, n, H), h, c)."""
         st = self.stepper
-        return self._split(_Segment.apply(self.consts, q0, self.psi[:, :, t: t + n],
+        return self._split(_Segment.apply(self.consts, self.low_fb, q0, self.psi[:, :, t: t + n],
                                           self.offset[:, :, t: t + n], self.w_fb, self.b_fb, *h, *c, *st.wb))
 
 
@@ -160,6 +178,9 @@ def cpp_steps(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.T
         return None
     if stepper.wb[0].dtype not in (torch.float32, torch.float64):  # the C++ cell loops: float and double
         return None
+    dt = stepper.store.dtype
+    if dt is not None and (dt != torch.bfloat16 or stepper.wb[0].dtype != torch.float32):
+        return None  # bf16 products give float32 (lstm_cell.h, low_bmm)
     dtype = view.state_mean.dtype
     offset = _phi_offset(task, psi, dtype) if grounded else psi.new_zeros(*psi.shape[:-1], 3)
     if offset is None:

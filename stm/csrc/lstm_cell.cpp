@@ -6,8 +6,33 @@
 
 #include <ATen/Dispatch.h>
 
+#include <algorithm>
+#include <cstdint>
+
+// MKL's bf16 GEMM (row-major CBLAS), in the MKL that x86 libtorch links in; weak: absent elsewhere (null).
+extern "C" void cblas_gemm_bf16bf16f32(int layout, int trans_a, int trans_b, int m, int n, int k, float alpha,
+                                       const uint16_t* a, int lda, const uint16_t* b, int ldb, float beta, float* c,
+                                       int ldc) __attribute__((weak));
+
 namespace stm_cpp {
 namespace {
+
+constexpr int CBLAS_ROW_MAJOR = 101, CBLAS_NO_TRANS = 111, CBLAS_TRANS = 112;
+
+// A (K, R, C) operand as a row-major matrix per model: (tensor, transposed, leading dimension); a copy only where
+// neither of its last two dimensions is unit-stride.
+struct Operand {
+  Tensor t;
+  bool trans = false;
+  int64_t ld = 0;
+};
+
+Operand operand(const Tensor& t) {
+  const int64_t r = t.size(1), c = t.size(2);
+  if (t.stride(2) == 1 && t.stride(1) >= std::max<int64_t>(c, 1)) return {t, false, t.stride(1)};
+  if (t.stride(1) == 1 && t.stride(2) >= std::max<int64_t>(r, 1)) return {t, true, t.stride(2)};
+  return {t.contiguous(), false, c};
+}
 
 // The LSTM cell's elementwise maths in plain loops, one pass before ATen's tanh and one after, instead of a
 // dozen ATen calls: the same arithmetic, operation for operation, as those calls of stm.lstm_step (addcmul(a, b,
@@ -82,6 +107,38 @@ Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options) {
 
 Tensor rows_ready(const Tensor& t) { return t.stride(-1) == 1 ? t : t.contiguous(); }
 
+void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulate) {
+  TORCH_CHECK(a.dim() == 3 && b.dim() == 3 && out.dim() == 3 && a.scalar_type() == at::kBFloat16 &&
+                  b.scalar_type() == at::kBFloat16 && out.scalar_type() == at::kFloat && out.stride(2) == 1,
+              "low_bmm: bf16 (K, M, P) @ (K, P, N) into float32 (K, M, N) rows");
+  const int64_t K = out.size(0), M = out.size(1), N = out.size(2), P = a.size(2);
+  if (cblas_gemm_bf16bf16f32 == nullptr) {  // ATen's bf16 product, its output rounded to bf16
+    const auto p = at::bmm(a, b);
+    if (accumulate) out.add_(p);
+    else out.copy_(p);
+    return;
+  }
+  const auto oa = operand(a), ob = operand(b);
+  const auto* pa = reinterpret_cast<const uint16_t*>(oa.t.data_ptr<at::BFloat16>());
+  const auto* pb = reinterpret_cast<const uint16_t*>(ob.t.data_ptr<at::BFloat16>());
+  float* pc = out.data_ptr<float>();
+  const int64_t ldc = std::max<int64_t>(out.stride(1), std::max<int64_t>(N, 1));
+  for (int64_t k = 0; k < K; ++k) {
+    cblas_gemm_bf16bf16f32(CBLAS_ROW_MAJOR, oa.trans ? CBLAS_TRANS : CBLAS_NO_TRANS,
+                           ob.trans ? CBLAS_TRANS : CBLAS_NO_TRANS, static_cast<int>(M), static_cast<int>(N),
+                           static_cast<int>(P), 1.0F, pa + k * oa.t.stride(0), static_cast<int>(oa.ld),
+                           pb + k * ob.t.stride(0), static_cast<int>(ob.ld), accumulate ? 1.0F : 0.0F,
+                           pc + k * out.stride(0), static_cast<int>(ldc));
+  }
+}
+
+Tensor product(const Tensor& a, const Tensor& b) {
+  if (a.scalar_type() != at::kBFloat16) return at::bmm(a, b);
+  auto out = at::empty({a.size(0), a.size(1), b.size(2)}, a.options().dtype(at::kFloat));
+  low_bmm(out, a, b, false);
+  return out;
+}
+
 void cell_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
                   const Block& o_dt, const Block& h, const Block& h2) {
   const int64_t K = tc.size(0), B = tc.size(1), H = tc.size(2);
@@ -127,8 +184,9 @@ void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const B
 // A layer's weight gradient from the rows ([x, h] (K, N, I + H), d gates (K, N, 4H)) of a chunk of steps: one
 // product per chunk, handed to autograd, which sums the chunks'. (Deferring all rows to one product after the
 // unroll, as the Python steps do, would copy every row once more into one tensor: as much time as it saves.)
-void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db) {
-  dw = at::bmm(xh.transpose(1, 2), dg);
+void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db, const Tensor& xh_low,
+                     const Tensor& dg_low) {
+  dw = xh_low.defined() ? product(xh_low.transpose(1, 2), dg_low) : at::bmm(xh.transpose(1, 2), dg);
   db = dg.sum(1, true);
 }
 
@@ -151,12 +209,23 @@ std::vector<SeqLayer> sequence_layers(const Tensor& x, const TensorList& h, cons
 
 // Layer k of a sequence, all n steps: each step's h into the next layer's x (the top's into out) and into its own
 // [x, h] of the next step (after the last: h_last); c alternates between two blocks, the last returned.
+// With w_low (w in bf16) the products take bf16 operands: xh's in xh_low, the x part of all steps at once, the h
+// part step by step.
 Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0, const Tensor& w, const Tensor& b,
-                      const Tensor& w_h, const Tensor& out, const Tensor& h_last) {
+                      const Tensor& w_h, const Tensor& w_low, const Tensor& out, const Tensor& h_last) {
   auto& lay = layers[k];
   const int64_t K = lay.xh.size(0), B = lay.xh.size(1), n = lay.xh.size(2), I = lay.inputs, H = h_last.size(-1);
   auto x = lay.xh.narrow(-1, 0, I).view({K, B * n, I});
-  lay.sig = at::baddbmm(b, x, w.narrow(1, 0, I)).view({K, B, n, 4 * H});
+  if (w_low.defined()) {  // the bias in float32, the input projection added to it
+    lay.xh_low = at::empty(lay.xh.sizes(), lay.xh.options().dtype(at::kBFloat16));
+    auto x_low = lay.xh_low.narrow(-1, 0, I);
+    x_low.copy_(lay.xh.narrow(-1, 0, I));
+    lay.sig = b.expand({K, B * n, 4 * H}).contiguous();
+    low_bmm(lay.sig, x_low.view({K, B * n, I}), w_low.narrow(1, 0, I), true);
+    lay.sig = lay.sig.view({K, B, n, 4 * H});
+  } else {
+    lay.sig = at::baddbmm(b, x, w.narrow(1, 0, I)).view({K, B, n, 4 * H});
+  }
   lay.gd = step_buffer(n, x, K, B, 4 * H);
   lay.o_dt = step_buffer(n, x, K, B, H);
   const auto cells = block_pair({K, B, H}, x.options());
@@ -164,7 +233,13 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
   Tensor c = rows_ready(c0);
   for (int64_t t = 0; t < n; ++t) {
     auto sig = lay.sig.select(2, t);
-    at::baddbmm_out(sig, sig, lay.xh.select(2, t).narrow(-1, I, H), w_h);  // the projection in place
+    if (w_low.defined()) {
+      auto h_low = lay.xh_low.select(2, t).narrow(-1, I, H);
+      h_low.copy_(lay.xh.select(2, t).narrow(-1, I, H));
+      low_bmm(sig, h_low, w_low.narrow(1, I, H), true);
+    } else {
+      at::baddbmm_out(sig, sig, lay.xh.select(2, t).narrow(-1, I, H), w_h);  // the projection in place
+    }
     sig.sigmoid_();
     const Block up = k + 1 < layers.size() ? slice(layers[k + 1].xh, 2, t) : slice(out, 2, t);
     const Block next = t + 1 < n ? slice(lay.xh, 2, t + 1, I) : Block(h_last);
@@ -178,19 +253,21 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
 
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
     Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h_in,
-    const TensorList& w_hT) {
+    const TensorList& w_hT, const TensorList& low) {
   const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h
   auto seq = std::make_shared<Sequence>();
   seq->ws = ws;
   seq->w_hT = w_hT;
+  seq->low = low;
   const int64_t K = x.size(0), B = x.size(1), n = x.size(2), H = h[0].size(-1);
   seq->layers = sequence_layers(x, h, ws);
   const auto out = at::empty({K, B, n, H}, x.options());
   for (size_t k = 0; k < h.size(); ++k) {
     const int64_t I = seq->layers[k].inputs;
-    auto w_h = w_h_in.empty() ? ws[k].narrow(1, I, H).contiguous() : w_h_in[k];
+    const Tensor w_low = low.empty() ? Tensor() : low[k];
+    auto w_h = w_low.defined() ? Tensor() : w_h_in.empty() ? ws[k].narrow(1, I, H).contiguous() : w_h_in[k];
     h[k] = at::empty({K, B, H}, x.options());
-    c[k] = sequence_layer(seq->layers, k, c[k], ws[k], bs[k], w_h, out, h[k]);
+    c[k] = sequence_layer(seq->layers, k, c[k], ws[k], bs[k], w_h, w_low, out, h[k]);
   }
   return {out, h, c, seq};
 }
@@ -208,11 +285,15 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const int64_t K = lay.xh.size(0), B = lay.xh.size(1), n = lay.xh.size(2), I = lay.inputs;
     const int64_t H = lay.o_dt.size(-1);
     const auto opt = lay.o_dt.options();
-    auto w_hT = seq->w_hT.empty() ? seq->ws[k].narrow(1, I, H).transpose(1, 2).contiguous() : seq->w_hT[k];
+    const Tensor w_low = seq->low.empty() ? Tensor() : seq->low[k];
+    auto w_hT = w_low.defined()     ? w_low.narrow(1, I, H).transpose(1, 2)
+                : seq->w_hT.empty() ? seq->ws[k].narrow(1, I, H).transpose(1, 2).contiguous()
+                                    : seq->w_hT[k];
     Tensor dh_rec = g_h[k].has_value() ? rows_ready(*g_h[k]) : at::zeros({K, B, H}, opt);
     Tensor dc = g_c[k].has_value() ? rows_ready(*g_c[k]) : Tensor();
     // d gates straight into the rows of the weight gradient; dh, dc alternating between two blocks each
     const auto dg = at::empty({K, B, n, 4 * H}, opt);
+    const auto dg_low = w_low.defined() ? at::empty({K, B, n, 4 * H}, opt.dtype(at::kBFloat16)) : Tensor();
     auto dhs = block_pair({K, B, H}, opt);
     const auto dcs = block_pair({K, B, H}, opt);
     for (int64_t t = n - 1; t >= 0; --t) {
@@ -220,12 +301,24 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
       cell_backward(slice(lay.sig, 2, t), slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), dh_rec,
                     g_out.defined() ? slice(g_out, 2, t) : Block(), dc, dg_t, dcs[t % 2]);
       dc = dcs[t % 2];
-      at::bmm_out(dhs[t % 2], dg_t, w_hT);
+      if (w_low.defined()) {
+        auto dl = dg_low.select(2, t);
+        dl.copy_(dg_t);
+        low_bmm(dhs[t % 2], dl, w_hT, false);
+      } else {
+        at::bmm_out(dhs[t % 2], dg_t, w_hT);
+      }
       dh_rec = dhs[t % 2];
     }
     auto dg_rows = dg.view({K, B * n, 4 * H});
-    weight_gradient(lay.xh.view({K, B * n, I + H}), dg_rows, dw[k], db[k]);
-    if (k > 0) g_out = at::bmm(dg_rows, seq->ws[k].narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
+    if (w_low.defined()) {
+      const auto dl_rows = dg_low.view({K, B * n, 4 * H});
+      weight_gradient(Tensor(), dg_rows, dw[k], db[k], lay.xh_low.view({K, B * n, I + H}), dl_rows);
+      if (k > 0) g_out = product(dl_rows, w_low.narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
+    } else {
+      weight_gradient(lay.xh.view({K, B * n, I + H}), dg_rows, dw[k], db[k]);
+      if (k > 0) g_out = at::bmm(dg_rows, seq->ws[k].narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
+    }
     dh0[k] = dh_rec;
     dc0[k] = dc.defined() ? dc : at::zeros({K, B, H}, opt);
   }

@@ -42,6 +42,14 @@ void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const B
 // t where its last dimension is contiguous, else a contiguous copy (gradients may come expanded).
 Tensor rows_ready(const Tensor& t);
 
+// bf16 products (TrainConfig.matmul_dtype "bfloat16"): out (K, M, N) float32, its rows contiguous, = a @ b, or
+// += with accumulate; a (K, M, P), b (K, P, N) bfloat16, transposed views taken as they are. Through MKL's
+// bf16 x bf16 -> float32 GEMM where libtorch carries it (float32 accumulation and result: no bf16 rounding of
+// the output, which ATen's bf16 product rounds, and less time); else ATen's bf16 product, added or copied.
+void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulate);
+// a @ b: at::bmm for float32 operands (the float32 path as it was), low_bmm's for bfloat16 ones.
+Tensor product(const Tensor& a, const Tensor& b);
+
 // Known inputs (ground truth) through the stack, n steps: layer by layer, the input projection of all steps as one
 // product and only the recurrent part stepped (stm.packed_lstm_step._LayerSeq, op for op). For short runs between
 // self-fed segments this beats oneDNN's fused layer, whose set-up costs more than its five steps.
@@ -50,22 +58,27 @@ Tensor rows_ready(const Tensor& t);
 // projection, each step's recurrent product added in place and its sigmoids taken there.
 struct SeqLayer {
   Tensor xh, sig;     // (K, B, n, I + H), (K, B, n, 4H)
+  Tensor xh_low;      // bf16 products: xh in bf16, the products' operand (undefined: float32 products)
   Tensor gd, o_dt;    // per step: (n, K, B, 4H), (n, K, B, H)
   int64_t inputs = 0;  // I
 };
 
 struct Sequence {
   TensorList ws, w_hT;  // w_hT: each layer's recurrent weights transposed, contiguous (K, 4H, H)
+  TensorList low;       // each layer's w in bf16, cast once per unroll (empty: float32 products)
   std::vector<SeqLayer> layers;
 };
 
-void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db);
+// With xh_low and dg_low (the rows in bf16) the product takes those.
+void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db, const Tensor& xh_low = Tensor(),
+                     const Tensor& dg_low = Tensor());
 // w_h, w_hT: per layer the recurrent rows of w, contiguous (K, H, 4H), and transposed, contiguous (K, 4H, H),
 // made once per unroll by the caller (the weights are views whose rows a copy must gather: per call, one copy each
-// per layer and chunk); empty lists: made here.
+// per layer and chunk); empty lists: made here. low: each layer's w in bf16 for bf16 products (w_h, w_hT unused),
+// empty for float32 ones.
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
     Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h,
-    const TensorList& w_hT);
+    const TensorList& w_hT, const TensorList& low);
 std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c);

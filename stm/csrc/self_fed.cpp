@@ -12,6 +12,11 @@
 // the products' outputs included (out= calls): no per-step allocations, and the weight gradients' rows are already
 // in place, not gathered by a cat at the end. The LSTM stack itself: lstm_cell.h.
 //
+// bf16 products (TrainConfig.matmul_dtype "bfloat16"; Segment::low): the LSTM stack's and the feedback head's
+// products, forward and backward, and the weight gradients take bf16 operands (the weights cast once per unroll, on
+// the Python side; [x, h] and d gates per step into bf16 buffers) and give float32 (lstm_cell.h, low_bmm); the
+// state, the gate maths, the fed-back state and the tip's kinematics stay float32.
+//
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate
 // columns i, f, o, 2g; b (K, 1, 4H); the feedback head w_fb (K, H, O), b_fb (K, 1, O).
 #include <torch/extension.h>
@@ -31,7 +36,9 @@ using stm_cpp::fed_backward;
 using stm_cpp::fed_context;
 using stm_cpp::fed_joints;
 using stm_cpp::JOINTS;
+using stm_cpp::low_bmm;
 using stm_cpp::Pair;
+using stm_cpp::product;
 using stm_cpp::rows_ready;
 using stm_cpp::Sequence;
 using stm_cpp::slice;
@@ -52,6 +59,7 @@ struct Step {
 // head read (the rows of its weight gradient).
 struct SegLayer {
   Tensor xh;             // (K, n, B, I + H)
+  Tensor xh_low;         // bf16 products: xh in bf16, each step's rows cast before its product
   Tensor sig, gd, o_dt;  // per step (n, K, B, 4H), (n, K, B, 4H), (n, K, B, H)
   int64_t inputs = 0;    // I
 };
@@ -60,6 +68,7 @@ struct SegLayer {
 struct Segment {
   TensorList ws;
   Tensor w_fb;
+  TensorList low;  // bf16 products: w_fb, then each layer's w, in bf16 (empty: float32 products)
   std::vector<Step> steps;
   std::vector<SegLayer> layers;
   Tensor qs;      // the fed-back q per step (n, K, B, JOINTS): the forward's, one block per step
@@ -88,7 +97,8 @@ std::pair<Tensor, Tensor> tip_kinematics(const Tensor& q, const TensorList& fk, 
 
 // The layers' buffers for n steps; each layer's h before the segment into its [x, h] of the first step, its bias
 // into every step's sig (the steps add their products in place: one copy per layer, not one per step).
-std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs, const TensorList& h, int64_t n) {
+std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs, const TensorList& h, int64_t n,
+                                     bool low) {
   const int64_t K = h[0].size(0), B = h[0].size(1), H = h[0].size(2);
   const auto opt = h[0].options();
   std::vector<SegLayer> layers;
@@ -96,6 +106,7 @@ std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs,
     SegLayer lay;
     lay.inputs = ws[k].size(1) - H;
     lay.xh = at::empty({K, n, B, lay.inputs + H}, opt);
+    if (low) lay.xh_low = at::empty({K, n, B, lay.inputs + H}, opt.dtype(at::kBFloat16));
     lay.sig = bs[k].expand({n, K, B, 4 * H}).contiguous();
     lay.gd = at::empty({n, K, B, 4 * H}, opt);
     lay.o_dt = at::empty({n, K, B, H}, opt);
@@ -109,7 +120,13 @@ std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs,
 // likely component's mean (stm.mdn.component_mean), its index kept for the backward.
 Tensor feedback_prediction(const Segment& seg, const Tensor& h_top, const Tensor& w_fb, const Tensor& b_fb,
                            Step& st) {
-  auto out = at::baddbmm(b_fb, h_top, w_fb);
+  Tensor out;
+  if (seg.low.empty()) {
+    out = at::baddbmm(b_fb, h_top, w_fb);
+  } else {  // the bias in float32, the product added to it
+    out = b_fb.expand({h_top.size(0), h_top.size(1), w_fb.size(-1)}).contiguous();
+    low_bmm(out, h_top.to(at::kBFloat16), seg.low[0], true);
+  }
   const int64_t m = seg.mixtures, dims = seg.dims;
   if (m == 0) return out;
   const int64_t K = out.size(0), B = out.size(1);
@@ -127,7 +144,13 @@ void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<
   for (int64_t k = 0; k < L; ++k) {
     const auto& lay = seg.layers[k];
     auto sig = lay.sig[j];
-    at::baddbmm_out(sig, sig, lay.xh.select(1, seg.slot(j)), seg.ws[k]);  // sig holds the bias
+    if (seg.low.empty()) {
+      at::baddbmm_out(sig, sig, lay.xh.select(1, seg.slot(j)), seg.ws[k]);  // sig holds the bias
+    } else {  // the step's [x, h] complete now (x from the layer below): its bf16 rows, kept for the weight gradient
+      auto xh_low = lay.xh_low.select(1, seg.slot(j));
+      xh_low.copy_(lay.xh.select(1, seg.slot(j)));
+      low_bmm(sig, xh_low, seg.low[k + 1], true);
+    }
     sig.sigmoid_();
     const Block up = k + 1 < L ? slice(seg.layers[k + 1].xh, 1, seg.slot(j)) : slice(block, 2, j);
     const Block next = j + 1 < n ? slice(lay.xh, 1, seg.slot(j + 1), lay.inputs) : Block(h_last[k]);
@@ -142,7 +165,7 @@ void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_forward(
     TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const Tensor& w_fb, const Tensor& b_fb,
     const Tensor& q0, const Tensor& psi, const Tensor& phi_offset, const Tensor& mean, const Tensor& lower,
-    const Tensor& upper, const TensorList& fk, const std::vector<int64_t>& ints) {
+    const Tensor& upper, const TensorList& fk, const std::vector<int64_t>& ints, const TensorList& low) {
   const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h, below_autograd
   auto seg = std::make_shared<Segment>();
   const int64_t degree = ints[0], slots = ints[1], monomials = ints[2];
@@ -155,10 +178,11 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   seg->detach = ints[9] != 0;
   seg->ws = ws;
   seg->w_fb = w_fb;
+  seg->low = low;
   const int64_t K = q0.size(0), B = q0.size(1), n = psi.size(2);
   const int64_t L = static_cast<int64_t>(h.size()), H = h[0].size(-1);
   seg->steps.resize(n);
-  seg->layers = segment_layers(ws, bs, h, n);
+  seg->layers = segment_layers(ws, bs, h, n, !low.empty());
   const auto block = at::empty({K, B, n, H}, h[0].options());
   const auto tc = at::empty({K, B, H}, h[0].options());
   std::vector<Pair> cells(L);
@@ -205,9 +229,10 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
 // The backward of step j of the stack, top layer first (stm.lstm_step._stack_backward): gh, gc in (gc alternating
 // between two blocks per layer, gcs[k]), the gradients of the step's inputs out, and g_top, the gradient of the
 // top h from the block (none: zero); d gates into the layers' rows dg[k]; returns the bottom layer's d [x, h],
-// d x in its first columns (undefined unless need_x).
+// d x in its first columns (undefined unless need_x). With bf16 products the d gates also into dg_low[k].
 Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, TensorList& gc, const Block& g_top,
-                           const TensorList& dg, const std::vector<Pair>& gcs, bool need_x) {
+                           const TensorList& dg, const TensorList& dg_low, const std::vector<Pair>& gcs,
+                           bool need_x) {
   const int64_t L = static_cast<int64_t>(seg.layers.size());
   Block below = g_top;  // d h from above: the layer above's d [x, h], its first H columns
   Tensor dxh, zeros;
@@ -224,15 +249,21 @@ Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, Tensor
     cell_backward(slice(lay.sig, 0, j), slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), dh_a, dh_b, gc[k], dgates,
                   gc_new);
     gc[k] = gc_new;
-    const auto& w = seg.ws[k];
+    Tensor w = seg.ws[k];
+    if (!seg.low.empty()) {
+      w = seg.low[k + 1];
+      auto dl = dg_low[k].select(1, seg.slot(j));
+      dl.copy_(dgates);
+      dgates = dl;
+    }
     if (k > 0 || need_x) {
-      dxh = at::bmm(dgates, w.transpose(1, 2));
+      dxh = product(dgates, w.transpose(1, 2));
       below = dxh;
       gh[k] = dxh.narrow(-1, d_in, H);
     } else {  // a detached input: only the recurrent part
       below = Block();
       dxh = Tensor();
-      gh[k] = at::bmm(dgates, w.narrow(1, d_in, H).transpose(1, 2));
+      gh[k] = product(dgates, w.narrow(1, d_in, H).transpose(1, 2));
     }
   }
   return dxh;
@@ -249,12 +280,14 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
   const auto& top = seg->layers[L - 1];
   const int64_t K = top.o_dt.size(1), B = top.o_dt.size(2), H = top.o_dt.size(3);
   const auto opt = top.o_dt.options();
-  TensorList gh(L), gc(L), dg(L);
+  const bool low = !seg->low.empty();
+  TensorList gh(L), gc(L), dg(L), dg_low(L);
   std::vector<Pair> gcs(L);
   for (int64_t k = 0; k < L; ++k) {
     if (g_h[k].has_value()) gh[k] = rows_ready(*g_h[k]);
     if (g_c[k].has_value()) gc[k] = rows_ready(*g_c[k]);
     dg[k] = at::empty({K, n, B, 4 * H}, opt);  // rows in xh's order
+    if (low) dg_low[k] = at::empty({K, n, B, 4 * H}, opt.dtype(at::kBFloat16));
     gcs[k] = block_pair({K, B, H}, opt);
   }
   const Tensor gb = g_block.has_value() ? rows_ready(*g_block) : Tensor();
@@ -263,8 +296,8 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
   const auto gqs = block_pair({K, B, JOINTS}, opt);
   Tensor gq;  // gradient of the q a step leaves for the next
   for (int64_t j = n - 1; j >= 0; --j) {
-    const auto dxh = stack_step_backward(*seg, j, gh, gc, gb.defined() ? slice(gb, 2, j) : Block(), dg, gcs,
-                                        !seg->detach);
+    const auto dxh = stack_step_backward(*seg, j, gh, gc, gb.defined() ? slice(gb, 2, j) : Block(), dg, dg_low,
+                                         gcs, !seg->detach);
     if (seg->detach) continue;
     const auto dout = douts.select(1, seg->slot(j));
     // back through stm.model.feedback_state and the head's component choice (gather)
@@ -273,17 +306,23 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
     fed_backward(dxh, gq, st.jac, slice(seg->mask_q, 0, j), seg->gripper ? slice(seg->mask_g, 0, j) : Block(),
                  st.idx, seg->phi_start, seg->free_phi ? seg->phi_dim : 0, seg->mixtures, seg->dims, gq_new, dout);
     gq = gq_new;
-    gh[L - 1] = gh[L - 1] + at::bmm(dout, seg->w_fb.transpose(1, 2));
+    gh[L - 1] = gh[L - 1] + (low ? product(dout.to(at::kBFloat16), seg->low[0].transpose(1, 2))
+                                 : at::bmm(dout, seg->w_fb.transpose(1, 2)));
   }
   TensorList dw(L), db(L);
   for (int64_t k = 0; k < L; ++k) {
     const auto& lay = seg->layers[k];
-    weight_gradient(lay.xh.view({K, n * B, -1}), dg[k].view({K, n * B, 4 * H}), dw[k], db[k]);
+    const auto dg_rows = dg[k].view({K, n * B, 4 * H});
+    weight_gradient(lay.xh.view({K, n * B, -1}), dg_rows, dw[k], db[k],
+                    low ? lay.xh_low.view({K, n * B, -1}) : Tensor(),
+                    low ? dg_low[k].view({K, n * B, 4 * H}) : Tensor());
   }
   Tensor dw_fb, db_fb;
   if (!seg->detach) {  // one product for all the segment's steps
     const auto rows = douts.view({K, n * B, outs});
-    dw_fb = at::bmm(top.xh.narrow(-1, top.inputs, H).view({K, n * B, H}).transpose(1, 2), rows);
+    const auto& xh = low ? top.xh_low : top.xh;
+    dw_fb = product(xh.narrow(-1, top.inputs, H).view({K, n * B, H}).transpose(1, 2),
+                    low ? rows.to(at::kBFloat16) : rows);
     db_fb = rows.sum(1, true);
   }
   return {gh, gc, dw_fb, db_fb, dw, db};
