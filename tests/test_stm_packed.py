@@ -190,13 +190,15 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
     assert entry["window_speedup_packed_ac_u5v5"] == pytest.approx(ms["packed_ac_u5v5"] / ms["packed_ac_u5v5_window"],
                                                                    rel=0.02)
     # the matrix-product floor, per model-iteration, side by side with the iterations of the same run
-    for k in ("tf", "ac_u5v5", "packed_tf", "packed_ac_u5v5"):
+    for k in ("tf", "ac_u5v5", "packed_tf", "packed_ac_u5v5", "ac_u5v5_cpp", "packed_ac_u5v5_cpp"):
         per_model = ms[k] / (3 if k.startswith("packed") else 1)
         assert entry["ms_per_model_iter"][k] == pytest.approx(per_model, rel=0.02)
         floor = entry["floor_ms_per_model_iter"][k]
         assert entry["floor_ratio"][k] == pytest.approx(per_model / floor["fp32"], rel=0.05)
         assert entry["matmuls_per_iter"][k] > 0 and floor["bf16"] > 0
         assert entry["bf16_over_fp32"][k] == pytest.approx(ms[f"bf16_{k}"] / ms[k], rel=0.02)
+        assert entry["bf16_floor_ratio"][k] == pytest.approx(entry["bf16_ms_per_model_iter"][k] / floor["fp32"],
+                                                             rel=0.05)
     assert entry["aten_calls_per_iter"]["ac_u5v5"] > entry["aten_calls_per_iter"]["tf"] > 0
     fk = out["fk"]
     assert set(fk["us_per_call"]) == set(fk["aten_calls"]) == {"train", "train_packed", "rollouts"}

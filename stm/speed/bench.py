@@ -16,14 +16,15 @@ window_speedup_packed_ac_u5v5 is a packed u = v = 5 iteration on the whole demos
 steps after a 20-step burn-in (stm.training.windows); matmul_share_ac_u5v5 is the share of one model's a.c.
 iteration spent in matrix products (torch.profiler; a lower bound) and packed_speedup_ceiling the most a pack
 of K could then gain (Amdahl: products cost K-fold, the rest once); bf16_over_fp32: the tf and a.c. u = v = 5
-iterations, single and packed, with bf16 matrix products (TrainConfig.matmul_dtype) over float32, timed in the
-same rounds. The floor (stm.speed.floor): the matrix products of one tf and one a.c. u = v = 5 iteration,
-single and packed, recorded and replayed alone in fp32 and in bf16, timed in the same rounds; floor_ratio = ms
-per model-iteration / its fp32 floor; floor_ratio_warm the same over the warm replay (operands in cache: a
-lower bound under the floor). The training iterations run with subnormal floats flushed to zero, as
-stm.training.loop trains; --weights CHECKPOINT also times a pack of a trained checkpoint's copies with them
-flushed and kept (stm.speed.trained: on a peaked mixture head the difference is large). The tip kinematics
-of the fed-back state (stm.fk) against
+iterations, single and packed, with bf16 matrix products (TrainConfig.matmul_dtype) over float32, timed in the same
+rounds (the *_cpp ones: the C++ steps' bf16 products over their float32 ones); bf16_floor_ratio: ms per
+model-iteration with bf16 products / the float32 iteration's fp32 floor. The floor (stm.speed.floor): the matrix
+products of one tf and one a.c. u = v = 5 iteration, single and packed, recorded and replayed alone in fp32 and in
+bf16, timed in the same rounds; floor_ratio = ms per model-iteration / its fp32 floor; floor_ratio_warm the same
+over the warm replay (operands in cache: a lower bound under the floor). The training iterations run with subnormal
+floats flushed to zero, as stm.training.loop trains; --weights CHECKPOINT also times a pack of a trained
+checkpoint's copies with them flushed and kept (stm.speed.trained: on a peaked mixture head the difference is
+large). The tip kinematics of the fed-back state (stm.fk) against
 pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
 3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an
 evaluation cell's).
@@ -134,7 +135,7 @@ def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK,
 # timed with their matrix-product floors
 FLOOR_CASES = ("tf", "tf_cpp", "ac_u5v5", "ac_u5v5_cpp", "packed_tf", "packed_tf_cpp", "packed_ac_u5v5",
                "packed_ac_u5v5_cpp")
-BF16_CASES = tuple(k for k in FLOOR_CASES if not k.endswith("_cpp"))  # the C++ steps take float32 products only
+BF16_CASES = FLOOR_CASES
 MATMULS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm"}
 
 
@@ -229,6 +230,9 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
         # TrainConfig.matmul_dtype "bfloat16": the same iteration's ms over float32's, timed in the same rounds
         "bf16_over_fp32": {k: round(med[f"bf16_{k}"] / med[k], 3) for k in BF16_CASES},
+        # with bf16 products against the fp32 floor (the float32 iteration's products replayed alone)
+        "bf16_ms_per_model_iter": {k: round(per_model[f"bf16_{k}"] * 1e3, 2) for k in BF16_CASES},
+        "bf16_floor_ratio": {k: round(med[f"bf16_{k}"] / med[f"floor_fp32_{k}"], 3) for k in BF16_CASES},
         "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "tf_cpp", "ac_u5v5", "ac_u5v5_cpp")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),

@@ -19,7 +19,8 @@ def summary(result: dict) -> str:
                                  for k, v in r["floor_ms_per_model_iter"].items())
                      + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
                      + " | warm " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio_warm"].items())
-                     + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
+                     + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items())
+                     + " | bf16/fp32 floor " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_floor_ratio"].items()))
     if "trained_weights" in result:
         tw = result["trained_weights"]
         lines.append(f"{tw['checkpoint']} ({tw['task']}, iteration {tw['iteration']}, {tw['head']} head, u={tw['u']} "
