@@ -132,6 +132,18 @@ void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulat
   }
 }
 
+void to_low(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X) {
+  const auto s = rows<float>(src);
+  const auto d = rows<at::BFloat16>(dst);
+  for (int64_t k = 0; k < K; ++k) {
+    for (int64_t b = 0; b < B; ++b) {
+      const float* __restrict__ in = s.at(k, b);
+      at::BFloat16* __restrict__ out = d.at(k, b);
+      for (int64_t j = 0; j < X; ++j) out[j] = at::BFloat16(in[j]);
+    }
+  }
+}
+
 Tensor product(const Tensor& a, const Tensor& b) {
   if (a.scalar_type() != at::kBFloat16) return at::bmm(a, b);
   auto out = at::empty({a.size(0), a.size(1), b.size(2)}, a.options().dtype(at::kFloat));
@@ -234,9 +246,8 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
   for (int64_t t = 0; t < n; ++t) {
     auto sig = lay.sig.select(2, t);
     if (w_low.defined()) {
-      auto h_low = lay.xh_low.select(2, t).narrow(-1, I, H);
-      h_low.copy_(lay.xh.select(2, t).narrow(-1, I, H));
-      low_bmm(sig, h_low, w_low.narrow(1, I, H), true);
+      to_low(slice(lay.xh, 2, t, I), slice(lay.xh_low, 2, t, I), K, B, H);
+      low_bmm(sig, lay.xh_low.select(2, t).narrow(-1, I, H), w_low.narrow(1, I, H), true);
     } else {
       at::baddbmm_out(sig, sig, lay.xh.select(2, t).narrow(-1, I, H), w_h);  // the projection in place
     }
@@ -302,9 +313,8 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
                     g_out.defined() ? slice(g_out, 2, t) : Block(), dc, dg_t, dcs[t % 2]);
       dc = dcs[t % 2];
       if (w_low.defined()) {
-        auto dl = dg_low.select(2, t);
-        dl.copy_(dg_t);
-        low_bmm(dhs[t % 2], dl, w_hT, false);
+        to_low(slice(dg, 2, t), slice(dg_low, 2, t), K, B, 4 * H);
+        low_bmm(dhs[t % 2], dg_low.select(2, t), w_hT, false);
       } else {
         at::bmm_out(dhs[t % 2], dg_t, w_hT);
       }

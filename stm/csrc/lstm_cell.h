@@ -49,6 +49,9 @@ Tensor rows_ready(const Tensor& t);
 void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulate);
 // a @ b: at::bmm for float32 operands (the float32 path as it was), low_bmm's for bfloat16 ones.
 Tensor product(const Tensor& a, const Tensor& b);
+// X float32 columns of a step block into a bfloat16 one, rounded to nearest even as ATen's cast: per step and layer
+// an ATen copy's views and iterator set-up cost more than the conversion.
+void to_low(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X);
 
 // Known inputs (ground truth) through the stack, n steps: layer by layer, the input projection of all steps as one
 // product and only the recurrent part stepped (stm.packed_lstm_step._LayerSeq, op for op). For short runs between

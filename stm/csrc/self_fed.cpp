@@ -44,6 +44,7 @@ using stm_cpp::Sequence;
 using stm_cpp::slice;
 using stm_cpp::Tensor;
 using stm_cpp::TensorList;
+using stm_cpp::to_low;
 using stm_cpp::weight_gradient;
 
 namespace {
@@ -69,6 +70,7 @@ struct Segment {
   TensorList ws;
   Tensor w_fb;
   TensorList low;  // bf16 products: w_fb, then each layer's w, in bf16 (empty: float32 products)
+  Tensor fb_out;   // bf16 products: the feedback head's outputs per step (n, K, B, O), the bias written in
   std::vector<Step> steps;
   std::vector<SegLayer> layers;
   Tensor qs;      // the fed-back q per step (n, K, B, JOINTS): the forward's, one block per step
@@ -118,14 +120,18 @@ std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs,
 
 // The feedback head's prediction from the top h (stm.packed.PackView.feedback_predictor); for an MDN head the most
 // likely component's mean (stm.mdn.component_mean), its index kept for the backward.
-Tensor feedback_prediction(const Segment& seg, const Tensor& h_top, const Tensor& w_fb, const Tensor& b_fb,
+// bf16 products: h_top into the top layer's bf16 [x, h] of step j, where the step's product reads it too.
+Tensor feedback_prediction(const Segment& seg, int64_t j, const Tensor& h_top, const Tensor& w_fb, const Tensor& b_fb,
                            Step& st) {
   Tensor out;
   if (seg.low.empty()) {
     out = at::baddbmm(b_fb, h_top, w_fb);
-  } else {  // the bias in float32, the product added to it
-    out = b_fb.expand({h_top.size(0), h_top.size(1), w_fb.size(-1)}).contiguous();
-    low_bmm(out, h_top.to(at::kBFloat16), seg.low[0], true);
+  } else {
+    const auto& top = seg.layers.back();
+    const int64_t H = h_top.size(-1);
+    to_low(rows_ready(h_top), slice(top.xh_low, 1, seg.slot(j), top.inputs), h_top.size(0), h_top.size(1), H);
+    out = seg.fb_out[j];
+    low_bmm(out, top.xh_low.select(1, seg.slot(j)).narrow(-1, top.inputs, H), seg.low[0], true);
   }
   const int64_t m = seg.mixtures, dims = seg.dims;
   if (m == 0) return out;
@@ -147,9 +153,9 @@ void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<
     if (seg.low.empty()) {
       at::baddbmm_out(sig, sig, lay.xh.select(1, seg.slot(j)), seg.ws[k]);  // sig holds the bias
     } else {  // the step's [x, h] complete now (x from the layer below): its bf16 rows, kept for the weight gradient
-      auto xh_low = lay.xh_low.select(1, seg.slot(j));
-      xh_low.copy_(lay.xh.select(1, seg.slot(j)));
-      low_bmm(sig, xh_low, seg.low[k + 1], true);
+      to_low(slice(lay.xh, 1, seg.slot(j)), slice(lay.xh_low, 1, seg.slot(j)), sig.size(0), sig.size(1),
+             lay.xh.size(-1));
+      low_bmm(sig, lay.xh_low.select(1, seg.slot(j)), seg.low[k + 1], true);
     }
     sig.sigmoid_();
     const Block up = k + 1 < L ? slice(seg.layers[k + 1].xh, 1, seg.slot(j)) : slice(block, 2, j);
@@ -183,6 +189,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   const int64_t L = static_cast<int64_t>(h.size()), H = h[0].size(-1);
   seg->steps.resize(n);
   seg->layers = segment_layers(ws, bs, h, n, !low.empty());
+  if (!low.empty()) seg->fb_out = b_fb.expand({n, K, B, w_fb.size(-1)}).contiguous();
   const auto block = at::empty({K, B, n, H}, h[0].options());
   const auto tc = at::empty({K, B, H}, h[0].options());
   std::vector<Pair> cells(L);
@@ -204,7 +211,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   Tensor q_prev = rows_ready(q0);
   for (int64_t j = 0; j < n; ++j) {
     Step& st = seg->steps[j];
-    const auto pred = feedback_prediction(*seg, j == 0 ? h[L - 1] : block.select(2, j - 1), w_fb, b_fb, st);
+    const auto pred = feedback_prediction(*seg, j, j == 0 ? h[L - 1] : block.select(2, j - 1), w_fb, b_fb, st);
     // stm.model.feedback_state, the centred input straight into the bottom layer's [x, h]
     const Block x = slice(seg->layers[0].xh, 1, seg->slot(j));
     const auto q = seg->qs[j];
@@ -252,9 +259,9 @@ Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, Tensor
     Tensor w = seg.ws[k];
     if (!seg.low.empty()) {
       w = seg.low[k + 1];
-      auto dl = dg_low[k].select(1, seg.slot(j));
-      dl.copy_(dgates);
-      dgates = dl;
+      to_low(slice(dg[k], 1, seg.slot(j)), slice(dg_low[k], 1, seg.slot(j)), gc_new.size(0), gc_new.size(1),
+             4 * H);
+      dgates = dg_low[k].select(1, seg.slot(j));
     }
     if (k > 0 || need_x) {
       dxh = product(dgates, w.transpose(1, 2));
@@ -293,6 +300,7 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
   const Tensor gb = g_block.has_value() ? rows_ready(*g_block) : Tensor();
   const int64_t outs = seg->w_fb.size(-1);
   const Tensor douts = seg->detach ? Tensor() : at::zeros({K, n, B, outs}, opt);  // the head's, in xh's order
+  const Tensor douts_low = low && !seg->detach ? at::empty({K, n, B, outs}, opt.dtype(at::kBFloat16)) : Tensor();
   const auto gqs = block_pair({K, B, JOINTS}, opt);
   Tensor gq;  // gradient of the q a step leaves for the next
   for (int64_t j = n - 1; j >= 0; --j) {
@@ -306,8 +314,12 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
     fed_backward(dxh, gq, st.jac, slice(seg->mask_q, 0, j), seg->gripper ? slice(seg->mask_g, 0, j) : Block(),
                  st.idx, seg->phi_start, seg->free_phi ? seg->phi_dim : 0, seg->mixtures, seg->dims, gq_new, dout);
     gq = gq_new;
-    gh[L - 1] = gh[L - 1] + (low ? product(dout.to(at::kBFloat16), seg->low[0].transpose(1, 2))
-                                 : at::bmm(dout, seg->w_fb.transpose(1, 2)));
+    if (low) {
+      to_low(dout, slice(douts_low, 1, seg->slot(j)), K, B, outs);
+      gh[L - 1] = gh[L - 1] + product(douts_low.select(1, seg->slot(j)), seg->low[0].transpose(1, 2));
+    } else {
+      gh[L - 1] = gh[L - 1] + at::bmm(dout, seg->w_fb.transpose(1, 2));
+    }
   }
   TensorList dw(L), db(L);
   for (int64_t k = 0; k < L; ++k) {
@@ -322,7 +334,7 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
     const auto rows = douts.view({K, n * B, outs});
     const auto& xh = low ? top.xh_low : top.xh;
     dw_fb = product(xh.narrow(-1, top.inputs, H).view({K, n * B, H}).transpose(1, 2),
-                    low ? rows.to(at::kBFloat16) : rows);
+                    low ? douts_low.view({K, n * B, outs}) : rows);
     db_fb = rows.sum(1, true);
   }
   return {gh, gc, dw_fb, db_fb, dw, db};
