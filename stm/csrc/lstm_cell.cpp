@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <cstring>
 
 // MKL's bf16 GEMM (row-major CBLAS), in the MKL that x86 libtorch links in; weak: absent elsewhere (null).
 extern "C" void cblas_gemm_bf16bf16f32(int layout, int trans_a, int trans_b, int m, int n, int k, float alpha,
@@ -132,14 +133,27 @@ void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulat
   }
 }
 
+namespace {
+
+// c10::BFloat16's rounding (to nearest even; NaN to a quiet NaN) on the bits, branch-free so that the loop
+// vectorises (through the constructor it stays scalar).
+inline uint16_t bf16_bits(float f) {
+  uint32_t u = 0;
+  std::memcpy(&u, &f, sizeof u);
+  const auto rounded = static_cast<uint16_t>((u + 0x7FFFU + ((u >> 16) & 1U)) >> 16);
+  return f != f ? static_cast<uint16_t>(0x7FC0) : rounded;  // NOLINT(misc-redundant-expression): NaN
+}
+
+}  // namespace
+
 void to_low(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X) {
   const auto s = rows<float>(src);
   const auto d = rows<at::BFloat16>(dst);
   for (int64_t k = 0; k < K; ++k) {
     for (int64_t b = 0; b < B; ++b) {
       const float* __restrict__ in = s.at(k, b);
-      at::BFloat16* __restrict__ out = d.at(k, b);
-      for (int64_t j = 0; j < X; ++j) out[j] = at::BFloat16(in[j]);
+      auto* __restrict__ out = reinterpret_cast<uint16_t*>(d.at(k, b));
+      for (int64_t j = 0; j < X; ++j) out[j] = bf16_bits(in[j]);
     }
   }
 }
