@@ -116,10 +116,11 @@ def test_holding_on_or_staying_at_the_block_fails(task, demos):
     ep = _episode_of(demos, 2)
     t_open = int(np.flatnonzero(np.diff(grip) == -1)[0]) + 1
     never_released = task.evaluate(q, np.where(np.arange(len(grip)) >= t_open, 1.0, grip), ep)
-    assert never_released["success"] == 0.0
+    assert never_released["success"] == 0.0 and never_released["grip_closed"] == 1.0
     # opened but never retreated: the fingers still straddle the block
     stayed = task.evaluate(pad_rows(q[: t_open + 3], len(q)), grip, ep)
     assert stayed["success"] == 0.0 and stayed["tip_to_block"] < 0.03 and stayed["final_distance"] < 0.005
+    assert stayed["grip_closed"] == 0.0 and stayed["tilt"] < 0.2
 
 
 def test_bad_input_is_rejected(task):

@@ -103,9 +103,10 @@ def placed_ok(world: BlockWorld, block: int, goal: np.ndarray) -> tuple[bool, di
     st = world.state(block)
     err = st.bottom - goal
     tip_away = float(np.linalg.norm(world.tip_position() - st.centre))
-    ok = rests_at(st, goal, XY_TOL, Z_TOL, MAX_TILT) and not world.robot_touches(block) and tip_away >= AWAY
+    touching = world.robot_touches(block)
+    ok = rests_at(st, goal, XY_TOL, Z_TOL, MAX_TILT) and not touching and tip_away >= AWAY
     return ok, {"final_distance": float(np.linalg.norm(err)), "xy_error": float(np.hypot(*err[:2])),
-                "z_error": float(err[2]), "tip_to_block": tip_away}
+                "z_error": float(err[2]), "tip_to_block": tip_away, "tilt": st.tilt, "touching": float(touching)}
 
 
 def run_pick_place(q: np.ndarray, grip: np.ndarray, goal: np.ndarray, level: int) -> dict[str, float]:
@@ -118,7 +119,8 @@ def run_pick_place(q: np.ndarray, grip: np.ndarray, goal: np.ndarray, level: int
         world.scene.play(q, grip, STEP_SECONDS)
         world.hold(q[-1], float(grip[-1]), SETTLE_SECONDS)
         ok, metrics = placed_ok(world, block, goal)
-    return {"success": float(ok and grip[-1] < 0.5), **metrics}
+    grip_closed = float(grip[-1] >= 0.5)  # the last grip command: a place ends with the gripper open
+    return {"success": float(ok and not grip_closed), **metrics, "grip_closed": grip_closed}
 
 
 def retreat_poses(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -334,7 +336,8 @@ class PickPlace(Task):
 
     def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
         """Metrics: success, final_distance (|block bottom - goal|, m), xy_error, z_error (m),
-        tip_to_block (m). The goal is info["goal"], else the episode's last psi row."""
+        tip_to_block (m), tilt (rad), touching and grip_closed (the last grip command; 0 or 1). The goal
+        is info["goal"], else the episode's last psi row."""
         q, grip = check_grip_trajectory(q, grip)
         goal = np.asarray(episode.info.get("goal", episode.psi[-1]), float)
         return run_pick_place(q, grip, goal, int(episode.info.get("level", level_of(goal))))

@@ -1,6 +1,7 @@
 """The placeholders over several studies of one training task ({{ data_scaling(...) }}, {{ lever(...) }},
-{{ goal_switch(...) }}, {{ stacking(...) }}, {{ comparisons(...) }}): how each builds its rows, table and
-figure, and the studies they name, a milestones study's stage included as NAME@ITERATION."""
+{{ goal_switch(...) }}, {{ stacking(...) }}, {{ pick_place_failures(...) }}, {{ comparisons(...) }}): how each
+builds its rows, table and figure, and the studies they name, a milestones study's stage included as
+NAME@ITERATION."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import pandas as pd
 
 from experiments.runtime.tracking import MILESTONE_ITERATION
 from experiments.stats import SUCCESS_NOTE
-from reports.analyses import data_scaling, goal_switch, levers, stacking
+from reports.analyses import data_scaling, goal_switch, levers, pick_place_failures, stacking
 from reports.data.store import StoreError, Study, file_safe
 from reports.plotting import FigureResult
 from reports.results import comparisons
@@ -61,6 +62,21 @@ ACROSS = {  # template.MULTI_STUDY's placeholders
                       f"last place ended); tower of at least k: blocks standing as a tower from the bottom up; "
                       f"closest approach: the tip's, to each block's grasp point."),
         lambda task, studies: f"{file_safe(task)}_stacking_{file_safe(studies[-1].name)}"),
+    "pick_place_failures": AcrossStudies(
+        pick_place_failures.NAME, pick_place_failures.failure_rows, pick_place_failures.failure_table,
+        pick_place_failures.failure_figure, levers.LeverError,
+        lambda task: (f"the pick-and-place and changing-goal pick-and-place episodes of the {task} models, pooled "
+                      f"over seeds, each in the first stage it did not get through; setting: as in the lever table; "
+                      f"never came for the block: the tool tip never within {stacking.REACH * 100:g} cm of the point "
+                      f"where the block is grasped; off the goal: the block's bottom ends more than "
+                      f"{pick_place_failures.XY_TOL * 100:g} cm from the goal in xy; not released: within that, yet "
+                      f"failed, counted (episodes) by the first check failed: its height more than "
+                      f"{pick_place_failures.Z_TOL * 100:g} cm off, tilted more than {pick_place_failures.MAX_TILT:g} "
+                      f"rad, a finger on it, the tip within {pick_place_failures.AWAY * 100:g} cm of it, the last grip "
+                      f"command closed (not recorded: rollouts from before tilt, finger contact and grip were kept); "
+                      f"tip ends over the new goal: within {pick_place_failures.OVER * 100:g} cm in xy, of all "
+                      f"changing-goal episodes."),
+        lambda task, studies: f"{file_safe(task)}_pick_place_failures_{file_safe(studies[-1].name)}"),
     "comparisons": AcrossStudies(
         comparisons.TITLE, comparisons.paper_rows, comparisons.paper_table, None, comparisons.ComparisonError,
         lambda task: comparisons.NOTE, lambda task, studies: ""),

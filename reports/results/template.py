@@ -5,6 +5,7 @@ before any study is read so that a typo is one line naming it (with its line), n
     {{ figure("NAME") }}  {{ sweep_table("TASK") }}  {{ sweep_figure("TASK") }}  {{ sweep_figure("TASK", "NAME") }}
     {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}  {{ lever("TASK", "STUDY", "STUDY", ...) }}
     {{ goal_switch("TASK", "STUDY", "STUDY", ...) }}  {{ stacking("TASK", "STUDY", "STUDY", ...) }}
+    {{ pick_place_failures("TASK", "STUDY", "STUDY", ...) }}
     {{ comparisons("TASK", "STUDY", ...) }}  {{ compare("EVAL_TASK", "ROW", "ROW", ...) }}
     {{ difference("EVAL_TASK", "ROW", "ROW") }}  {{ rate("EVAL_TASK", "ROW") }}
     (a ROW is STUDY/VARIANT[+VARIANT...]: reports.results.comparisons)
@@ -23,8 +24,9 @@ from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 
 FIXED = ("provenance", "command")
 # placeholders whose arguments are a training task, then the studies (reports.results.across.ACROSS:
-# reports.analyses.data_scaling, reports.analyses.levers, reports.analyses.goal_switch, reports.analyses.stacking)
-MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking", "comparisons")
+# reports.analyses.data_scaling, reports.analyses.levers, reports.analyses.goal_switch, reports.analyses.stacking,
+# reports.analyses.pick_place_failures)
+MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking", "pick_place_failures", "comparisons")
 # placeholders whose arguments are an evaluated task, then pairs of rows STUDY/VARIANT[+VARIANT...]
 # (reports.results.comparisons)
 ROW_PAIRS = ("compare", "difference")

@@ -39,6 +39,9 @@ Placeholders of the template:
                              per study and variant: a table and a figure (reports.analyses.goal_switch)
     {{ stacking("TASK", "STUDY", ...) }}  which block the stacking episodes of TASK's models get to, per
                              study and variant: a table and a figure (reports.analyses.stacking)
+    {{ pick_place_failures("TASK", "STUDY", ...) }}  the stage each pick-and-place and changing-goal
+                             pick-and-place episode of TASK's models fails at, per study and variant: a table and a
+                             figure (reports.analyses.pick_place_failures)
     {{ comparisons("TASK", "STUDY", ...) }}  the paper's comparisons of the variants within each study, and each
                              study against the first per variant: differences, intervals, p
                              (reports.results.comparisons)
