@@ -14,7 +14,10 @@ can follow a study that trains across sessions.
 `--feedback MODE` evaluates the same kept checkpoints (the final one included: nothing is copied) feeding
 back MODE (stm.config.FEEDBACKS; an MDN's choice, a deterministic head has one output) instead of the
 cells' eval.feedback, as the study "<study>-milestones-feedback-<MODE>": the feedback lever of a study's own
-models, at the cost of evaluation only. Its runs log eval.feedback = MODE."""
+models, at the cost of evaluation only. Its runs log eval.feedback = MODE. With the cells' own MODE it is the
+lever's reference arm: the same models evaluated anew at the current commit, which also records whatever
+per-episode facts the tasks have gained since. `--iterations N ...` evaluates only the checkpoints kept at
+those iterations (a final model's too)."""
 
 from __future__ import annotations
 
@@ -79,9 +82,9 @@ def kept_iterations(client: Client, run_id: str) -> list[int]:
     return sorted(out)
 
 
-def find_milestones(client: Client, study: str, tasks: list[str] | None, variants: list[str] | None
-                    ) -> tuple[list[Milestone], str]:
-    """The kept checkpoints of the study's selected cells, and the study's profile."""
+def find_milestones(client: Client, study: str, tasks: list[str] | None, variants: list[str] | None,
+                    iterations: list[int] | None = None) -> tuple[list[Milestone], str]:
+    """The kept checkpoints of the study's selected cells (at the selected iterations), and the study's profile."""
     experiment = client.get_experiment_by_name(ABLATION)
     parent = find_parent_run(client, experiment.experiment_id, study) if experiment else None
     if parent is None:
@@ -93,9 +96,10 @@ def find_milestones(client: Client, study: str, tasks: list[str] | None, variant
             continue
         done = int(run.data.metrics.get("train/iterations", -1)) if run.info.status == "FINISHED" else -1
         out += [Milestone(run.info.run_id, tags["task"], tags["variant"], tags["seed"], it, final=it == done)
-                for it in kept_iterations(client, run.info.run_id)]
+                for it in kept_iterations(client, run.info.run_id) if not iterations or it in iterations]
     if not out:
-        raise MilestoneError(f"study {study!r} has no kept checkpoints (checkpoint_at/) for the selected cells; "
+        at = f" at iterations {', '.join(map(str, iterations))}" if iterations else ""
+        raise MilestoneError(f"study {study!r} has no kept checkpoints (checkpoint_at/) for the selected cells{at}; "
                              "run it with keep_checkpoints = N in its profile or --set keep_checkpoints=N")
     return sorted(out, key=lambda m: (m.task, m.variant, m.seed, m.iteration)), parent.data.tags.get("profile", "?")
 
@@ -204,14 +208,15 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
 
 def run_milestones(study: str, tasks: list[str] | None = None, variants: list[str] | None = None,
                    rollouts: int | None = None, workers: int = 1, uri: str | None = None,
-                   feedback: str | None = None, device: str = "cpu") -> dict[str, int]:
+                   feedback: str | None = None, device: str = "cpu", iterations: list[int] | None = None
+                   ) -> dict[str, int]:
     """Evaluate every kept checkpoint of the study not evaluated yet (feeding back `feedback` instead of the
     cells' own: module docstring); counts by outcome."""
     from experiments.runtime.processes import training_threads, worker_pool
 
     start = time.perf_counter()
     client = Client(uri)
-    milestones, profile = find_milestones(client, study, tasks, variants)
+    milestones, profile = find_milestones(client, study, tasks, variants, iterations)
     if feedback:  # the final models too are evaluated anew, with another feedback than their own evaluation's
         milestones = [dataclasses.replace(m, final=False) for m in milestones]
     parent_id, todo, done = prepare(client, study, profile, milestones, rollouts, feedback)
@@ -242,6 +247,8 @@ def add_parser(sub) -> None:
     p.add_argument("--tasks", nargs="+", default=None, help="training tasks (default: all of the study's)")
     p.add_argument("--variants", nargs="+", default=None, help="variants (default: all of the study's)")
     p.add_argument("--rollouts", type=int, default=None, help="episodes per seed and task (default: the cell's)")
+    p.add_argument("--iterations", type=int, nargs="+", default=None, metavar="N",
+                   help="only the checkpoints kept at these iterations (default: all)")
     p.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
     add_threads_option(p)
     add_device_option(p, "roll out")
@@ -259,7 +266,7 @@ def main(args) -> int:
     try:
         device = checked_device(args.device) or "cpu"
         counts = run_milestones(args.study, args.tasks, args.variants, args.rollouts, args.workers,
-                                feedback=args.feedback, device=device)
+                                feedback=args.feedback, device=device, iterations=args.iterations)
     except (MilestoneError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -93,6 +93,21 @@ def test_bad_selection_is_one_line_and_exit_2(tmp_path, args, message):
 
 
 @pytest.mark.slow
+def test_iterations_select_the_kept_checkpoints(kept_store):
+    proc = run_cli(["milestones", "--study", "kept", "--iterations", "10", "--feedback", "component_mean"], kept_store)
+    assert proc.returncode == 0, proc.stderr[-3000:]  # a deterministic head: one output whatever the feedback
+    assert "'kept-milestones-feedback-component_mean': 2 evaluated, 0 already done" in proc.stdout
+    client = MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("milestones")
+    runs = client.search_runs([exp.experiment_id],
+                              "tags.study_name = 'kept-milestones-feedback-component_mean' and tags.role = 'cell'")
+    assert sorted(r.data.tags["iteration"] for r in runs) == ["10", "10"]
+    assert all("copied" not in r.data.tags for r in runs)  # evaluated anew, not copied
+    none = run_cli(["milestones", "--study", "kept", "--iterations", "7"], kept_store)
+    assert none.returncode == 2 and "at iterations 7" in none.stderr
+
+
+@pytest.mark.slow
 def test_cells_without_kept_checkpoints_say_how_to_keep_them(kept_store):
     proc = run_cli(["milestones", "--study", "kept", "--variants", "ac-lstm"], kept_store)  # no such cell
     assert proc.returncode == 2
