@@ -6,8 +6,9 @@ ATen calls forward and backward, each paying Python's per-op cost. `cpp_steps` g
 node per run of self-fed steps instead, whose forward and backward are the same ATen calls issued from C++; and
 one per ground-truth chunk between them, a layer sequence in C++ (oneDNN's fused layer, which the Python path
 calls for one model, pays more set-up than five steps cost; the Python layer sequence, for a pack, pays Python's
-per-op cost). Weight gradients are one product per layer and chunk (or segment), handed to autograd, which sums
-them; deferring all rows to one product after the unroll, as the Python steps do, would copy every row once more.
+per-op cost). Weight gradients are one product per layer and chunk (or segment), summed in place over the unroll
+(_GradSums) and handed to autograd once; deferring all rows to one product after the unroll, as the Python steps do,
+would copy every row once more.
 
 TrainConfig.step_kernel = "cpp" selects it where it applies: an MDN head feeding back component_mean or a
 deterministic head; phi fed back free, or grounded where the task's phi is the tip plus a function of psi
@@ -75,13 +76,41 @@ class _Constants:
                      int(layout.gripper), int(free), layout.phi.start, layout.phi_dim, int(cfg.detach_feedback)]
 
 
+class _GradSums:
+    """The LSTM weight gradients of an unroll's C++ nodes (its ground-truth chunks and segments), summed in place:
+    each node's backward adds its chunk's product into one buffer per layer (beta = 1) instead of handing autograd
+    its own to add (a pass over the gradient per node and layer). The unroll's first node hands autograd the sums,
+    the others None: every other node follows it in the chain of h, c, so autograd runs all the others' backwards
+    (those it runs at all) before the first's, each once (once_differentiable)."""
+
+    def __init__(self):
+        self.nodes = 0
+        self.dw: list[torch.Tensor] = []
+        self.db: list[torch.Tensor] = []
+
+    def register(self) -> bool:
+        """A node's forward: whether it is the unroll's first."""
+        self.nodes += 1
+        return self.nodes == 1
+
+    def hand(self, first: bool, dw: list[torch.Tensor], db: list[torch.Tensor]) -> list[torch.Tensor | None]:
+        """A node's backward, after adding its gradients to the sums (dw, db: them): the weights' gradients."""
+        if not first:
+            self.dw, self.db = dw, db
+            return [None] * (2 * len(dw))
+        self.dw, self.db = [], []
+        return _interleave(dw, db)
+
+
 class _Segment(torch.autograd.Function):
     """n self-fed steps of the stack: (h, c per layer (K, B, H), q before the first step (K, B, 7)) -> the top
     hidden states (K, B, n, H) and the per-layer h, c after the last step."""
 
     @staticmethod
-    def forward(ctx, consts: _Constants, low: list[torch.Tensor], q0, psi, offset, w_fb, b_fb, *hc_wb):
+    def forward(ctx, consts: _Constants, sums: _GradSums, low: list[torch.Tensor], q0, psi, offset, w_fb, b_fb,
+                *hc_wb):
         L = consts.layers
+        ctx.sums, ctx.first = sums, sums.register()
         h, c, wb = list(hc_wb[:L]), list(hc_wb[L: 2 * L]), hc_wb[2 * L:]
         block, h, c, seg = self_fed_extension().segment_forward(
             h, c, list(wb[0::2]), list(wb[1::2]), w_fb, b_fb, q0, psi, offset, consts.mean, consts.lower,
@@ -94,10 +123,11 @@ class _Segment(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_block, *g_hc):
         L = len(g_hc) // 2
+        sums = ctx.sums
         dh, dc, dw_fb, db_fb, dw, db = self_fed_extension().segment_backward(ctx.seg, g_block, list(g_hc[:L]),
-                                                                              list(g_hc[L:]))
+                                                                              list(g_hc[L:]), sums.dw, sums.db)
         ctx.seg = None
-        return (None, None, None, None, None, dw_fb, db_fb, *dh, *dc, *_interleave(dw, db))
+        return (None, None, None, None, None, None, dw_fb, db_fb, *dh, *dc, *sums.hand(ctx.first, dw, db))
 
 
 class _Sequence(torch.autograd.Function):
@@ -105,7 +135,8 @@ class _Sequence(torch.autograd.Function):
     the per-layer h, c after the last step. The inputs get no gradient (ground truth)."""
 
     @staticmethod
-    def forward(ctx, layers: int, recurrent, low: list[torch.Tensor], x, *hc_wb):
+    def forward(ctx, layers: int, sums: _GradSums, recurrent, low: list[torch.Tensor], x, *hc_wb):
+        ctx.sums, ctx.first = sums, sums.register()
         h, c, wb = list(hc_wb[:layers]), list(hc_wb[layers: 2 * layers]), hc_wb[2 * layers:]
         out, h, c, seq = self_fed_extension().sequence_forward(x, h, c, list(wb[0::2]), list(wb[1::2]), *recurrent,
                                                                low)
@@ -117,9 +148,11 @@ class _Sequence(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_out, *g_hc):
         L = len(g_hc) // 2
-        dh, dc, dw, db = self_fed_extension().sequence_backward(ctx.seq, g_out, list(g_hc[:L]), list(g_hc[L:]))
+        sums = ctx.sums
+        dh, dc, dw, db = self_fed_extension().sequence_backward(ctx.seq, g_out, list(g_hc[:L]), list(g_hc[L:]),
+                                                                sums.dw, sums.db)
         ctx.seq = None
-        return (None, None, None, None, *dh, *dc, *_interleave(dw, db))
+        return (None, None, None, None, None, *dh, *dc, *sums.hand(ctx.first, dw, db))
 
 
 class CppSteps:
@@ -132,6 +165,7 @@ class CppSteps:
         self.consts, self.stepper, self.psi, self.offset = consts, stepper, psi, offset
         self.w_fb, self.b_fb = w_fb, b_fb
         self.layers = stepper.layers
+        self.sums = _GradSums()
         self._recurrent: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
         dt = stepper.store.dtype
         self.low_w = list(stepper.store.low[0::2]) if dt is not None else []
@@ -158,12 +192,12 @@ class CppSteps:
     def known(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]):
         """Centred known inputs (K, B, n, D) from per-layer h, c -> (top hidden states (K, B, n, H), h, c)."""
         st = self.stepper
-        return self._split(_Sequence.apply(self.layers, self.recurrent(), self.low_w, x, *h, *c, *st.wb))
+        return self._split(_Sequence.apply(self.layers, self.sums, self.recurrent(), self.low_w, x, *h, *c, *st.wb))
 
     def self_fed(self, h: list[torch.Tensor], c: list[torch.Tensor], q0: torch.Tensor, t: int, n: int):
         """n self-fed steps from input step t, q (K, B, 7) before them -> (top hidden states (K, B, n, H), h, c)."""
         st = self.stepper
-        return self._split(_Segment.apply(self.consts, self.low_fb, q0, self.psi[:, :, t: t + n],
+        return self._split(_Segment.apply(self.consts, self.sums, self.low_fb, q0, self.psi[:, :, t: t + n],
                                           self.offset[:, :, t: t + n], self.w_fb, self.b_fb, *h, *c, *st.wb))
 
 

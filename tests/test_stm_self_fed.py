@@ -168,6 +168,46 @@ def test_cpp_bf16_products_match_the_python_bf16_path(toy, case, monkeypatch):
         assert _relative(*flat) > BF16_SHOWS
 
 
+class _AutogradSums(self_fed._GradSums):
+    """Each node hands autograd its own weight gradients, which autograd sums (the sums in place undone)."""
+
+    def hand(self, first, dw, db):
+        return self_fed._interleave(dw, db)
+
+
+SUM_CASES = {  # (train config, models per pack)
+    "u2v2": (TrainConfig(u=2, v=2), 1),
+    "u1v4_packed": (TrainConfig(u=1, v=4), 3),
+    "bf16_packed": (TrainConfig(u=3, v=2, matmul_dtype="bfloat16"), 2),
+    "detached": (TrainConfig(u=2, v=3, detach_feedback=True), 1),
+}
+
+
+@needs_extension
+@pytest.mark.parametrize("case", list(SUM_CASES))
+def test_weight_gradients_summed_in_place_match_autograds_sum(toy, case, monkeypatch):
+    """The LSTM weight gradients of the C++ nodes, summed in place and handed to autograd by the unroll's first node
+    (stm.self_fed._GradSums), are those autograd sums from each node's own: within float32 rounding (the products'
+    sums in another order; bf16 products too: they add in float32), and only the first node hands them."""
+    task, data = toy
+    cfg, k = SUM_CASES[case]
+    cfg = dataclasses.replace(cfg, step_kernel="cpp")
+    pack = _pack(task, data, ModelConfig(hidden_size=16, num_layers=3, mixtures=3), cfg.phi_mode, k)
+    batch = data.batch(torch.arange(len(data.lengths)))
+    handed = []
+    hand = self_fed._GradSums.hand
+    monkeypatch.setattr(self_fed._GradSums, "hand", lambda self, first, dw, db: handed.append(first)
+                        or hand(self, first, dw, db))
+    loss, grads = _loss_and_grads(pack, batch, task, cfg)
+    assert len(handed) > 2 and handed[-1] and not any(handed[:-1])  # the first node's backward ran last
+    monkeypatch.setattr(self_fed, "_GradSums", _AutogradSums)
+    ref_loss, ref_grads = _loss_and_grads(pack, batch, task, cfg)
+    assert torch.equal(loss, ref_loss)
+    for name, g, g_ref in zip(pack.names, grads, ref_grads, strict=True):
+        scale = g_ref.abs().max().clamp_min(1e-3)
+        torch.testing.assert_close(g / scale, g_ref / scale, rtol=0, atol=GRAD_TOL, msg=lambda m, n=name: f"{n}: {m}")
+
+
 def test_a_phi_not_linear_in_the_tip_falls_back(toy):
     task, data = toy
     psi = data.batch(torch.arange(2)).psi.unsqueeze(0)

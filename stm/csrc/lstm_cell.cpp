@@ -207,13 +207,44 @@ void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const B
   });
 }
 
-// A layer's weight gradient from the rows ([x, h] (K, N, I + H), d gates (K, N, 4H)) of a chunk of steps: one
-// product per chunk, handed to autograd, which sums the chunks'. (Deferring all rows to one product after the
-// unroll, as the Python steps do, would copy every row once more into one tensor: as much time as it saves.)
+namespace {
+
+// db (K, 1, X) += the sum of the rows of dg (K, N, X), in a plain loop: ATen's sum and add cost a copy and a pass
+// more.
+template <typename T>
+void add_rows(const T* __restrict__ src, T* __restrict__ dst, int64_t X) {
+  for (int64_t j = 0; j < X; ++j) dst[j] += src[j];
+}
+
+void add_row_sums(const Tensor& dg, const Tensor& db) {
+  TORCH_CHECK(dg.stride(2) == 1 && db.is_contiguous() && db.scalar_type() == dg.scalar_type(),
+              "add_row_sums: rows of (K, N, X) into (K, 1, X)");
+  const int64_t K = dg.size(0), N = dg.size(1), X = dg.size(2);
+  AT_DISPATCH_FLOATING_TYPES(dg.scalar_type(), "add_row_sums", [&] {
+    const auto* src = dg.data_ptr<scalar_t>();
+    auto* dst = db.data_ptr<scalar_t>();
+    for (int64_t k = 0; k < K; ++k)
+      for (int64_t r = 0; r < N; ++r) add_rows<scalar_t>(src + k * dg.stride(0) + r * dg.stride(1), dst + k * X, X);
+  });
+}
+
+}  // namespace
+
+// One product per chunk. Summed in place over an unroll's chunks (the product's beta = 1) rather than each handed to
+// autograd, which adds them: one pass over the gradient per chunk and layer less. (Deferring all rows to one product
+// after the unroll, as the Python steps do, would copy every row once more into one tensor: as much time as it
+// saves.)
 void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db, const Tensor& xh_low,
                      const Tensor& dg_low) {
-  dw = xh_low.defined() ? product(xh_low.transpose(1, 2), dg_low) : at::bmm(xh.transpose(1, 2), dg);
-  db = dg.sum(1, true);
+  if (!dw.defined()) {
+    dw = xh_low.defined() ? product(xh_low.transpose(1, 2), dg_low) : at::bmm(xh.transpose(1, 2), dg);
+    db = at::zeros({dg.size(0), 1, dg.size(2)}, dg.options());
+  } else if (xh_low.defined()) {
+    low_bmm(dw, xh_low.transpose(1, 2), dg_low, true);
+  } else {
+    at::baddbmm_out(dw, dw, xh.transpose(1, 2), dg);
+  }
+  add_row_sums(dg, db);
 }
 
 namespace {
@@ -300,10 +331,13 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_f
 // Gradients of the initial h, c and of w, b per layer; the inputs' gradient is not needed (known inputs).
 std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
-    const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
+    const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c, TensorList dw,
+    TensorList db) {
   const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h
   const int64_t L = static_cast<int64_t>(seq->layers.size());
-  TensorList dh0(L), dc0(L), dw(L), db(L);
+  TensorList dh0(L), dc0(L);
+  dw.resize(L);
+  db.resize(L);
   Tensor g_out = g_out_top.has_value() ? rows_ready(*g_out_top) : Tensor();
   for (int64_t k = L - 1; k >= 0; --k) {
     const auto& lay = seq->layers[k];

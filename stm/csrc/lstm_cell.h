@@ -72,7 +72,9 @@ struct Sequence {
   std::vector<SeqLayer> layers;
 };
 
-// With xh_low and dg_low (the rows in bf16) the product takes those.
+// A layer's weight gradient from a chunk's rows ([x, h] (K, N, I + H), d gates (K, N, 4H)): dw, db undefined: made
+// here; defined: the unroll's sums so far, this chunk's added in place (stm.self_fed, _GradSums). With xh_low and
+// dg_low (the rows in bf16) the product takes those.
 void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db, const Tensor& xh_low = Tensor(),
                      const Tensor& dg_low = Tensor());
 // w_h, w_hT: per layer the recurrent rows of w, contiguous (K, H, 4H), and transposed, contiguous (K, 4H, H),
@@ -82,8 +84,10 @@ void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db,
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
     Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h,
     const TensorList& w_hT, const TensorList& low);
+// dw, db: the weight gradients' sums to add to (empty: made here; see weight_gradient), returned.
 std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
-    const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c);
+    const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c, TensorList dw,
+    TensorList db);
 
 }  // namespace stm_cpp

@@ -278,12 +278,15 @@ Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, Tensor
 
 // Gradients of the segment's inputs from those of its outputs (undefined where none reached them):
 // d h, d c per layer (of the state before the segment), d w_fb, d b_fb (undefined with detached feedback),
-// and d w, d b per layer.
+// and d w, d b per layer: added to dw, db where they are given (the unroll's sums, lstm_cell.h weight_gradient).
 std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segment_backward(
     const std::shared_ptr<Segment>& seg, const c10::optional<Tensor>& g_block,
-    const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c) {
+    const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c, TensorList dw,
+    TensorList db) {
   const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h, below_autograd
   const int64_t L = static_cast<int64_t>(g_h.size()), n = static_cast<int64_t>(seg->steps.size());
+  dw.resize(L);
+  db.resize(L);
   const auto& top = seg->layers[L - 1];
   const int64_t K = top.o_dt.size(1), B = top.o_dt.size(2), H = top.o_dt.size(3);
   const auto opt = top.o_dt.options();
@@ -321,7 +324,6 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
       gh[L - 1] = gh[L - 1] + at::bmm(dout, seg->w_fb.transpose(1, 2));
     }
   }
-  TensorList dw(L), db(L);
   for (int64_t k = 0; k < L; ++k) {
     const auto& lay = seg->layers[k];
     const auto dg_rows = dg[k].view({K, n * B, 4 * H});
