@@ -108,6 +108,20 @@ Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options) {
 
 Tensor rows_ready(const Tensor& t) { return t.stride(-1) == 1 ? t : t.contiguous(); }
 
+Tensor bias_rows(const Tensor& b, int64_t P, int64_t Q) {
+  const auto bc = b.contiguous();
+  const int64_t K = bc.size(0), X = bc.size(-1);
+  TORCH_CHECK(bc.numel() == K * X, "bias_rows: a (K, 1, X) bias");
+  auto out = at::empty({P, K, Q, X}, bc.options());
+  const auto* src = static_cast<const char*>(bc.data_ptr());
+  auto* dst = static_cast<char*>(out.data_ptr());
+  const int64_t row = X * static_cast<int64_t>(bc.element_size());
+  for (int64_t p = 0; p < P; ++p)
+    for (int64_t k = 0; k < K; ++k)
+      for (int64_t q = 0; q < Q; ++q) std::memcpy(dst + ((p * K + k) * Q + q) * row, src + k * row, row);
+  return out;
+}
+
 void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulate) {
   TORCH_CHECK(a.dim() == 3 && b.dim() == 3 && out.dim() == 3 && a.scalar_type() == at::kBFloat16 &&
                   b.scalar_type() == at::kBFloat16 && out.scalar_type() == at::kFloat && out.stride(2) == 1,
@@ -277,11 +291,13 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
     lay.xh_low = at::empty(lay.xh.sizes(), lay.xh.options().dtype(at::kBFloat16));
     auto x_low = lay.xh_low.narrow(-1, 0, I);
     x_low.copy_(lay.xh.narrow(-1, 0, I));
-    lay.sig = b.expand({K, B * n, 4 * H}).contiguous();
+    lay.sig = bias_rows(b, 1, B * n).view({K, B * n, 4 * H});
     low_bmm(lay.sig, x_low.view({K, B * n, I}), w_low.narrow(1, 0, I), true);
     lay.sig = lay.sig.view({K, B, n, 4 * H});
   } else {
-    lay.sig = at::baddbmm(b, x, w.narrow(1, 0, I)).view({K, B, n, 4 * H});
+    lay.sig = bias_rows(b, 1, B * n).view({K, B * n, 4 * H});
+    at::baddbmm_out(lay.sig, lay.sig, x, w.narrow(1, 0, I));
+    lay.sig = lay.sig.view({K, B, n, 4 * H});
   }
   lay.gd = step_buffer(n, x, K, B, 4 * H);
   lay.o_dt = step_buffer(n, x, K, B, H);

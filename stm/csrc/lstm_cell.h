@@ -41,6 +41,9 @@ void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const B
                    const Block& gc, const Block& dgates, const Tensor& grad_c);
 // t where its last dimension is contiguous, else a contiguous copy (gradients may come expanded).
 Tensor rows_ready(const Tensor& t);
+// A new contiguous (P, K, Q, X) tensor whose every row (p, k, q) is b[k] (b (K, 1, X)): the bias each product is
+// added to. Row by row: ATen's copy of the broadcast bias costs several times as much.
+Tensor bias_rows(const Tensor& b, int64_t P, int64_t Q);
 
 // bf16 products (TrainConfig.matmul_dtype "bfloat16"): out (K, M, N) float32, its rows contiguous, = a @ b, or
 // += with accumulate; a (K, M, P), b (K, P, N) bfloat16, transposed views taken as they are. Through MKL's

@@ -109,7 +109,7 @@ std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs,
     lay.inputs = ws[k].size(1) - H;
     lay.xh = at::empty({K, n, B, lay.inputs + H}, opt);
     if (low) lay.xh_low = at::empty({K, n, B, lay.inputs + H}, opt.dtype(at::kBFloat16));
-    lay.sig = bs[k].expand({n, K, B, 4 * H}).contiguous();
+    lay.sig = stm_cpp::bias_rows(bs[k], n, B);
     lay.gd = at::empty({n, K, B, 4 * H}, opt);
     lay.o_dt = at::empty({n, K, B, H}, opt);
     lay.xh.select(1, n - 1).narrow(-1, lay.inputs, H).copy_(h[k]);
@@ -189,7 +189,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   const int64_t L = static_cast<int64_t>(h.size()), H = h[0].size(-1);
   seg->steps.resize(n);
   seg->layers = segment_layers(ws, bs, h, n, !low.empty());
-  if (!low.empty()) seg->fb_out = b_fb.expand({n, K, B, w_fb.size(-1)}).contiguous();
+  if (!low.empty()) seg->fb_out = stm_cpp::bias_rows(b_fb, n, B);
   const auto block = at::empty({K, B, n, H}, h[0].options());
   const auto tc = at::empty({K, B, H}, h[0].options());
   std::vector<Pair> cells(L);
