@@ -85,23 +85,27 @@ def _percent(share: float) -> str:
     return "–" if np.isnan(share) else f"{100 * share:.0f}%"
 
 
+def _in_order(agg: pd.DataFrame) -> pd.DataFrame:
+    """agg's rows by evaluated task (EVAL_TASKS' order), then variant (the paper's order)."""
+    return pd.concat([in_variant_order(agg[agg["eval_task"] == e]) for e in EVAL_TASKS])
+
+
 def failure_table(agg: pd.DataFrame) -> pd.DataFrame:
     """One row per (evaluated task, variant, study), as strings."""
     if agg.empty:
         return pd.DataFrame()
     rows = []
-    for eval_task in EVAL_TASKS:
-        for r in in_variant_order(agg[agg["eval_task"] == eval_task]).itertuples():
-            faults = r.facts["release_fault"].value_counts()
-            over = r.facts["over_new_goal"].dropna()
-            rows.append({
-                "task": paper.task_label(eval_task), "variant": paper.variant_label(r.variant), "setting": r.setting,
-                **{s: _percent(v) for s, v in zip(STAGES, stage_shares(r.facts), strict=True)},
-                "not released, by check: " + " / ".join(RELEASE_FAULTS): " / ".join(
-                    str(faults.get(f, 0)) for f in RELEASE_FAULTS),
-                f"tip ends over the new goal (< {OVER * 100:g} cm)": _percent(over.mean() if len(over) else np.nan),
-                "episodes": str(len(r.facts)), "seeds": str(r.seeds),
-            })
+    for r in _in_order(agg).itertuples():
+        faults = r.facts["release_fault"].value_counts()
+        over = r.facts["over_new_goal"].dropna()
+        rows.append({
+            "task": paper.task_label(r.eval_task), "variant": paper.variant_label(r.variant), "setting": r.setting,
+            **{s: _percent(v) for s, v in zip(STAGES, stage_shares(r.facts), strict=True)},
+            "not released, by check: " + " / ".join(RELEASE_FAULTS): " / ".join(
+                str(faults.get(f, 0)) for f in RELEASE_FAULTS),
+            f"tip ends over the new goal (< {OVER * 100:g} cm)": _percent(over.mean() if len(over) else np.nan),
+            "episodes": str(len(r.facts)), "seeds": str(r.seeds),
+        })
     return pd.DataFrame(rows)
 
 
@@ -109,8 +113,7 @@ def failure_figure(agg: pd.DataFrame, task: str, folder: Path) -> FigureResult:
     """One horizontal bar per (evaluated task, study, variant): the shares of the episodes at each stage, stacked."""
     if agg.empty:
         return gap(NAME, TITLE, f"no pick-and-place rollouts of {task} models in the named studies")
-    ordered = pd.concat([in_variant_order(agg[agg["eval_task"] == e]) for e in EVAL_TASKS
-                         if (agg["eval_task"] == e).any()])
+    ordered = _in_order(agg)
     labels = [f"{paper.task_label(r.eval_task)} · {paper.variant_label(r.variant)}\n{r.study}"
               for r in ordered.itertuples()]
     shares = np.array([stage_shares(r.facts) for r in ordered.itertuples()]) * 100
