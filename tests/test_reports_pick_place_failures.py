@@ -54,6 +54,9 @@ def test_each_episode_in_the_first_stage_it_did_not_get_through():
         recorded = {**away, "tilt": np.zeros(4), "touching": np.zeros(4), "grip_closed": np.zeros(4)}
         recorded[key] = np.array([0.0, 0.0, 0.0, 1.0])
         assert list(ppf.episode_facts(recorded, GRASP)["release_fault"]) == ["", "", "", fault]
+    assert facts["closed_again"].isna().all()  # grip_closes not recorded
+    closes = {**away, "grip_closed": np.array([0.0, 0.0, 0.0, 1.0]), "grip_closes": np.array([1.0, 0.0, 1.0, 2.0])}
+    np.testing.assert_array_equal(ppf.episode_facts(closes, GRASP)["closed_again"], [0.0, 0.0, 0.0, 1.0])
     # the last episode did not switch goal: no answer for it
     np.testing.assert_array_equal(facts["over_new_goal"], [0.0, 0.0, 1.0, np.nan])
     np.testing.assert_allclose(ppf.stage_shares(facts), [0.25, 0.25, 0.25, 0.25])
@@ -72,6 +75,11 @@ def test_table_and_figure(tmp_path):
     assert [row[s] for s in ppf.STAGES] == ["25%", "25%", "25%", "25%"]
     assert row["not released, by check: " + " / ".join(ppf.RELEASE_FAULTS)] == "0 / 0 / 0 / 1 / 0 / 0"
     assert row["tip ends over the new goal (< 3 cm)"] == "33%" and row["episodes"] == "4"
+    assert row["grip left closed: shut again after opening"] == "–"  # no episode failed by the grip command
+    shut = {**_arrays(), "tip_to_block": np.full(4, 0.2), "tilt": np.zeros(4), "touching": np.zeros(4),
+            "grip_closed": np.array([0.0, 0.0, 0.0, 1.0]), "grip_closes": np.array([1.0, 1.0, 1.0, 3.0])}
+    shut_row = ppf.failure_table(agg.assign(facts=[ppf.episode_facts(shut, GRASP)] * len(agg))).iloc[0]
+    assert shut_row["grip left closed: shut again after opening"] == "1 of 1"
     out = ppf.failure_figure(agg, "pick-place", tmp_path)
     assert not out.gap and all(p.stat().st_size > 0 for p in out.paths)
     assert ppf.failure_figure(agg.iloc[:0], "pick-place", tmp_path).gap

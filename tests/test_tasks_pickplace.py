@@ -90,7 +90,7 @@ def test_state_layout_consistency(task, demos):
 def test_expert_demo_succeeds_when_replayed_and_evaluation_is_repeatable(task, demos):
     q, grip = _demo(demos, 0)
     r = task.evaluate(q, grip, _episode_of(demos, 0))
-    assert r["success"] == 1.0 and r["final_distance"] < 0.005
+    assert r["success"] == 1.0 and r["final_distance"] < 0.005 and r["grip_closes"] == 1.0
     task.evaluate(*_demo(demos, 1), _episode_of(demos, 1))  # whatever ran before ...
     assert task.evaluate(q, grip, _episode_of(demos, 0)) == r  # ... the same rollout gives the same numbers
 
@@ -117,6 +117,11 @@ def test_holding_on_or_staying_at_the_block_fails(task, demos):
     t_open = int(np.flatnonzero(np.diff(grip) == -1)[0]) + 1
     never_released = task.evaluate(q, np.where(np.arange(len(grip)) >= t_open, 1.0, grip), ep)
     assert never_released["success"] == 0.0 and never_released["grip_closed"] == 1.0
+    assert never_released["grip_closes"] == 1.0
+    # placed and retreated, then the command shut again in the last steps: it counts a second close
+    shut_again = task.evaluate(q, np.where(np.arange(len(grip)) >= len(grip) - 2, 1.0, grip), ep)
+    assert shut_again["success"] == 0.0 and shut_again["grip_closed"] == 1.0 and shut_again["grip_closes"] == 2.0
+    assert shut_again["final_distance"] < 0.01  # the block itself stands placed
     # opened but never retreated: the fingers still straddle the block
     stayed = task.evaluate(pad_rows(q[: t_open + 3], len(q)), grip, ep)
     assert stayed["success"] == 0.0 and stayed["tip_to_block"] < 0.03 and stayed["final_distance"] < 0.005

@@ -119,8 +119,12 @@ def run_pick_place(q: np.ndarray, grip: np.ndarray, goal: np.ndarray, level: int
         world.scene.play(q, grip, STEP_SECONDS)
         world.hold(q[-1], float(grip[-1]), SETTLE_SECONDS)
         ok, metrics = placed_ok(world, block, goal)
-    grip_closed = float(grip[-1] >= 0.5)  # the last grip command: a place ends with the gripper open
-    return {"success": float(ok and not grip_closed), **metrics, "grip_closed": grip_closed}
+    closed = np.asarray(grip) >= 0.5
+    grip_closed = float(closed[-1])  # the last grip command: a place ends with the gripper open
+    # a demonstration closes once (the grasp): more closes mean the command shut again after opening
+    grip_closes = float(np.count_nonzero(closed[1:] & ~closed[:-1]) + closed[0])
+    return {"success": float(ok and not grip_closed), **metrics, "grip_closed": grip_closed,
+            "grip_closes": grip_closes}
 
 
 def retreat_poses(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -336,8 +340,9 @@ class PickPlace(Task):
 
     def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
         """Metrics: success, final_distance (|block bottom - goal|, m), xy_error, z_error (m),
-        tip_to_block (m), tilt (rad), touching and grip_closed (the last grip command; 0 or 1). The goal
-        is info["goal"], else the episode's last psi row."""
+        tip_to_block (m), tilt (rad), touching, grip_closed (the last grip command; 0 or 1) and grip_closes (how
+        often the command went from open to closed; a demonstration's once). The goal is info["goal"], else the
+        episode's last psi row."""
         q, grip = check_grip_trajectory(q, grip)
         goal = np.asarray(episode.info.get("goal", episode.psi[-1]), float)
         return run_pick_place(q, grip, goal, int(episode.info.get("level", level_of(goal))))

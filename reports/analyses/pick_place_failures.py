@@ -11,7 +11,9 @@ did not get through:
 The episodes not released are split by the first of the task's checks they fail (RELEASE_FAULTS): the block's
 bottom more than Z_TOL off the goal's height, tilted more than MAX_TILT, a finger on it, the tip within AWAY of
 it, or the last grip command closed; rollouts recorded before the last three were kept per episode leave those
-as "not recorded". For a changing-goal task, the share of all
+as "not recorded". Of the episodes whose last grip command is closed, those where it shut again after opening
+(the rollout's grip_closes above one, where recorded: a demonstration closes once, at the grasp) rather than
+never opening. For a changing-goal task, the share of all
 episodes whose tip ends over the new goal (within OVER in xy): the arm went there, with or without the block.
 The figure stacks the four stages' shares per row."""
 
@@ -42,7 +44,8 @@ RELEASE_FAULTS = ("height off", "tilted", "a finger on it", "tip at the block", 
 
 def episode_facts(arrays: dict[str, np.ndarray], grasp: np.ndarray) -> pd.DataFrame:
     """One row per episode: its stage (STAGES), for an episode not released its fault (RELEASE_FAULTS, else ""),
-    and whether the tip ends over the new goal (NaN where the episode has no goal switch)."""
+    whether the grip command shut again after opening (NaN where not recorded) and whether the tip ends over the
+    new goal (NaN where the episode has no goal switch)."""
     tip = np.asarray(arrays["tip"], float)
     success = np.asarray(arrays["success"], float) > 0.5
     came = np.linalg.norm(tip - grasp, axis=-1).min(axis=1) < REACH
@@ -55,7 +58,10 @@ def episode_facts(arrays: dict[str, np.ndarray], grasp: np.ndarray) -> pd.DataFr
         switched = np.asarray(arrays["switch_step"]) >= 0
         end_xy = np.linalg.norm(tip[:, -1, :2] - np.asarray(arrays["new_goal"], float)[:, :2], axis=-1)
         over_new[switched] = (end_xy < OVER)[switched]
-    return pd.DataFrame({"stage": stage, "release_fault": fault, "over_new_goal": over_new})
+    closes = np.asarray(arrays["grip_closes"], float) if "grip_closes" in arrays else np.full(len(tip), np.nan)
+    closed_again = np.where(np.isnan(closes), np.nan, closes > 1)
+    return pd.DataFrame({"stage": stage, "release_fault": fault, "closed_again": closed_again,
+                         "over_new_goal": over_new})
 
 
 def _release_checks(arrays: dict[str, np.ndarray], n: int) -> list[np.ndarray]:
@@ -90,6 +96,13 @@ def _in_order(agg: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([in_variant_order(agg[agg["eval_task"] == e]) for e in EVAL_TASKS])
 
 
+def _closed_again(facts: pd.DataFrame) -> str:
+    """"k of n": of the n not-released episodes failed by the grip command and with their closes recorded, the k
+    whose command shut again after opening; "–" where there are none."""
+    again = facts.loc[facts["release_fault"] == "grip left closed", "closed_again"].dropna()
+    return f"{int(again.sum())} of {len(again)}" if len(again) else "–"
+
+
 def failure_table(agg: pd.DataFrame) -> pd.DataFrame:
     """One row per (evaluated task, variant, study), as strings."""
     if agg.empty:
@@ -103,6 +116,7 @@ def failure_table(agg: pd.DataFrame) -> pd.DataFrame:
             **{s: _percent(v) for s, v in zip(STAGES, stage_shares(r.facts), strict=True)},
             "not released, by check: " + " / ".join(RELEASE_FAULTS): " / ".join(
                 str(faults.get(f, 0)) for f in RELEASE_FAULTS),
+            "grip left closed: shut again after opening": _closed_again(r.facts),
             f"tip ends over the new goal (< {OVER * 100:g} cm)": _percent(over.mean() if len(over) else np.nan),
             "episodes": str(len(r.facts)), "seeds": str(r.seeds),
         })
