@@ -58,16 +58,21 @@ def episode_facts(arrays: dict[str, np.ndarray], grasp: np.ndarray) -> pd.DataFr
         switched = np.asarray(arrays["switch_step"]) >= 0
         end_xy = np.linalg.norm(tip[:, -1, :2] - np.asarray(arrays["new_goal"], float)[:, :2], axis=-1)
         over_new[switched] = (end_xy < OVER)[switched]
-    closes = np.asarray(arrays["grip_closes"], float) if "grip_closes" in arrays else np.full(len(tip), np.nan)
+    closes = _recorded(arrays, "grip_closes", len(tip))
     closed_again = np.where(np.isnan(closes), np.nan, closes > 1)
     return pd.DataFrame({"stage": stage, "release_fault": fault, "closed_again": closed_again,
                          "over_new_goal": over_new})
 
 
+def _recorded(arrays: dict[str, np.ndarray], key: str, n: int) -> np.ndarray:
+    """The per-episode fact `key` as floats, NaN for each of the n episodes where the rollouts predate it."""
+    return np.asarray(arrays[key], float) if key in arrays else np.full(n, np.nan)
+
+
 def _release_checks(arrays: dict[str, np.ndarray], n: int) -> list[np.ndarray]:
     """Per RELEASE_FAULTS but the last, where each episode fails that check (False where it is not recorded)."""
     def fact(key: str) -> np.ndarray:
-        return np.asarray(arrays[key], float) if key in arrays else np.full(n, np.nan)
+        return _recorded(arrays, key, n)
 
     with np.errstate(invalid="ignore"):  # NaN: not recorded, compares False
         return [np.abs(fact("z_error")) > Z_TOL, fact("tilt") > MAX_TILT, fact("touching") > 0.5,
