@@ -27,6 +27,7 @@ from experiments.pack import pack_units, run_unit
 from experiments.runtime.claims import Claimed, claimed_cell, is_live
 from experiments.runtime.processes import default_workers, training_threads, worker_pool
 from experiments.runtime.schedule import prepare_datasets, run_scheduled
+from experiments.runtime.store_faults import StoreFault, fault_reason
 from experiments.runtime.tracking import (
     ABLATION,
     NOTE_TAG,
@@ -130,7 +131,7 @@ def _runs_by_hash(client: Client, experiment_id: str, parent_id: str) -> dict[st
 def _create_cell_run(client: Client, experiment_id: str, parent_id: str, cell: Cell):
     tags = {PARENT_TAG: parent_id, "task": cell.task, "variant": cell.variant, "seed": cell.seed,
             "profile": cell.profile, "config_hash": cell.config_hash, "study_name": cell.study_name,
-            "role": "cell", "eval_tasks": ",".join(cell.eval_tasks)}
+            "role": "cell", "eval_tasks": ",".join(cell.eval_tasks), "split": cell.eval.split}
     return client.create_run(experiment_id, run_name=cell.key, tags={k: str(v) for k, v in tags.items()})
 
 
@@ -143,6 +144,9 @@ def _withdraw_cell_run(client: Client, run_id: str) -> bool:
 
 
 def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
+    """Run the study's cells not FINISHED yet. Ctrl-C: the cells and the parent run KILLED (resumable), then
+    KeyboardInterrupt. A store fault (experiments/runtime/store_faults.py): StoreFault carrying what finished,
+    nothing more written."""
     start = time.perf_counter()
     uri = tracking_uri()
     cells = build_cells(cfg)
@@ -151,18 +155,45 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
     experiment_id = get_or_create_experiment(client, EXPERIMENT)
     parent_id = get_or_create_parent_run(client, experiment_id, study_name,
                                          {"kind": "ablation", "profile": cfg.profile})
-    log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
-                                   "study_hash": cfg.study_hash(), **provenance_params()})
     outcome = StudyOutcome(experiment_id, parent_id, study_name)
-    todo, outcome.skipped = prepare_runs(client, experiment_id, parent_id, cells)
-    for key in outcome.skipped:
-        log.info("skip %s: FINISHED with the same config hash", key)
+    todo: list[tuple[Cell, str]] = []
+    prepared = False
+    try:
+        log_params(client, parent_id, {"profile": cfg.profile, "study_name": study_name,
+                                       "study_hash": cfg.study_hash(), **provenance_params()})
+        todo, outcome.skipped = prepare_runs(client, experiment_id, parent_id, cells)
+        prepared = True
+        _run_cells(cfg, uri, client, outcome, todo, progress)
+        client.check_store()  # a store file deleted meanwhile would take the parent's last writes with it
+        outcome.seconds = time.perf_counter() - start
+        finish_parent(client, outcome, len(cells), "ablation")
+    except KeyboardInterrupt:
+        # interrupted cells are KILLED with their last checkpoint artifact (a re-run resumes them), and so are the
+        # runs prepared for cells that had not started: Ctrl-C while the runs were being created included
+        _mark_interrupted(client, outcome, experiment_id, cfg.sweep.grace_period)
+        raise
+    except Exception as exc:
+        reason = fault_reason(exc)
+        if reason is None:
+            raise
+        outcome.seconds = time.perf_counter() - start
+        done = {r.run_id for r in outcome.results if r.status == "FINISHED"}
+        unfinished = [cell.key for cell, run_id in todo if run_id not in done] if prepared else \
+            [c.key for c in cells]
+        raise StoreFault(reason, outcome, unfinished) from exc
+    return outcome
+
+
+def _run_cells(cfg: StudyConfig, uri: str, client: Client, outcome: StudyOutcome, todo: list[tuple[Cell, str]],
+               progress: bool | None) -> None:
     workers = cfg.workers or default_workers()
     units = pack_units(todo, cfg.pack, workers)
     workers = max(1, min(workers, len(units))) if units else 1
     interactive = sys.stderr.isatty() if progress is None else progress
-    log.info("study %r: %d cells (%d to run in %d job(s), %d done) with %d worker(s); store %s", study_name,
-             len(cells), len(todo), len(units), len(outcome.skipped), workers, uri)
+    log.info("study %r: %d cells (%d to run in %d job(s), %d done) with %d worker(s); store %s", outcome.study_name,
+             len(todo) + len(outcome.skipped), len(todo), len(units), len(outcome.skipped), workers, uri)
+    for key in outcome.skipped:
+        log.info("skip %s: FINISHED with the same config hash", key)
     level = logging.getLogger().getEffectiveLevel()
     claim = (cfg.sweep.heartbeat, cfg.sweep.grace_period)
     bar = _progress(len(todo), interactive)
@@ -173,24 +204,27 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
             for unit in units:
                 got = run_unit(*_unit_args(unit), uri, interactive, level, training_threads(), *claim, False)
                 _record_unit(outcome, unit, got, bar, len(todo), interactive, held)
+                client.check_store()
         else:
-            _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held)
+            _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held, client)
         for cell, run_id in held:  # cells another command of this study trains: wait for them
             got = claimed_cell(cell, uri, run_id, interactive, level, training_threads(), *claim, True)
             _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
-    except KeyboardInterrupt:
-        # interrupted cells are KILLED with their last checkpoint artifact: a re-run resumes them
-        done = {r.run_id for r in outcome.results}
-        runs = [client.get_run(run_id) for _, run_id in todo if run_id not in done]
-        # not a cell another command of this study is training (it holds a live claim on it)
-        mark_killed(client, [r.info.run_id for r in runs if not is_live(r, cfg.sweep.grace_period)])
-        client.set_terminated(parent_id, "KILLED")
-        raise
     finally:
         bar.close()
-    outcome.seconds = time.perf_counter() - start
-    finish_parent(client, outcome, len(cells), "ablation")
-    return outcome
+
+
+def _mark_interrupted(client: Client, outcome: StudyOutcome, experiment_id: str, grace: float) -> None:
+    """After Ctrl-C: the parent run KILLED, then the study's RUNNING cell runs (not one another command of this
+    study is training: it holds a live claim on it); best effort on the way out."""
+    try:
+        client.set_terminated(outcome.parent_run_id, "KILLED")
+        done = {r.run_id for r in outcome.results}
+        runs = [r for r in child_runs(client, experiment_id, outcome.parent_run_id)
+                if r.info.status == "RUNNING" and r.info.run_id not in done and not is_live(r, grace)]
+        mark_killed(client, [r.info.run_id for r in runs])
+    except Exception as exc:  # noqa: BLE001 - a store that fails now too: the runs stay RUNNING, resumable alike
+        log.warning("could not mark the study's runs KILLED: %s", str(exc).splitlines()[0][:300])
 
 
 def finish_parent(client: Client, outcome: StudyOutcome, n_cells: int, kind: str) -> None:
@@ -205,6 +239,8 @@ def finish_parent(client: Client, outcome: StudyOutcome, n_cells: int, kind: str
 
 def _record(outcome: StudyOutcome, cell: Cell, run_id: str, got: Claimed, bar, total: int, interactive: bool,
             held: list) -> None:
+    if got.kind == "ran" and got.result.store_fault:  # the study stops: run_study reports what finished
+        raise StoreFault(got.result.store_fault)
     if got.kind == "held":
         held.append((cell, run_id))
         log.info("%s: another command of this study is training it; waiting for it at the end", cell.key)
@@ -232,7 +268,7 @@ def _record_unit(outcome: StudyOutcome, unit: list[tuple[Cell, str]], got: list[
         _record(outcome, cell, run_id, g, bar, total, interactive, held)
 
 
-def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held) -> None:
+def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held, client) -> None:
     """Each unit (a cell, or a cell group's seeds packed: experiments/pack.py) in a worker process."""
     total = sum(len(u) for u in units)
 
@@ -241,10 +277,13 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
             got = fut.result()
         except BrokenProcessPool:
             raise
-        except Exception as exc:  # e.g. a result that failed to pickle
+        except Exception as exc:  # e.g. a result that failed to pickle; a store fault stops the study
+            if fault_reason(exc) is not None:
+                raise
             got = [Claimed("ran", CellResult(cell.key, run_id, "FAILED", error=f"{type(exc).__name__}: {exc}"))
                    for cell, run_id in unit]
         _record_unit(outcome, unit, got, bar, total, interactive, held)
+        client.check_store()
 
     try:
         with worker_pool(workers) as pool:
@@ -253,7 +292,6 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
                                                                    training_threads(), *claim, False), record)
     except BrokenProcessPool as exc:
         done = {r.run_id for r in outcome.results} | {run_id for _, run_id in held}
-        client = Client(uri)
         pending = [pair for unit in units for pair in unit if pair[1] not in done]
         if any(client.get_run(run_id).info.status == "KILLED" for _, run_id in pending):
             # a worker was interrupted and recorded it (SIGINT reached the workers, not this process): the study
@@ -301,6 +339,22 @@ def study_note(outcome: StudyOutcome, client: Client, kind: str) -> str:
         lines += ["Command:", "", f"    {command_line()}", ""]
     name = outcome.study_name
     lines.append(f"Report: `python -m reports --study {name}` writes `{report_index(name)}`.")
+    return "\n".join(lines)
+
+
+def fault_summary(outcome: StudyOutcome, unfinished: list[str]) -> str:
+    """The summary of a study a store fault stopped, from what this command saw (the store is not read again)."""
+    finished = [r.key for r in outcome.results if r.status == "FINISHED"]
+    failed = [r for r in outcome.failures if not r.store_fault]
+    lines = [f"study {outcome.study_name!r} stopped by a store fault after {outcome.seconds:.0f}s: "
+             f"{len(finished)} cell(s) FINISHED now, {len(outcome.skipped)} skipped (already FINISHED), "
+             f"{len(failed)} failed, {len(unfinished)} left unfinished (resumable: re-run the same command)"]
+    lines += [f"  FINISHED: {key}" for key in finished]
+    lines += [f"  FAILED: {r.key} (run {r.run_id}): {r.error}" for r in failed]
+    shown = unfinished[:20]
+    lines += [f"  unfinished: {key}" for key in shown]
+    if len(unfinished) > len(shown):
+        lines.append(f"  ... and {len(unfinished) - len(shown)} more unfinished")
     return "\n".join(lines)
 
 

@@ -1,8 +1,12 @@
 """`python -m experiments {ablation,sweep,smoothing,idm,milestones,scaling,ui}`.
 
 Exit codes: 0 success; 1 some cells/trials failed (summary printed); 2 bad configuration
-(one line naming the field and its allowed values, printed before anything is written);
-3 a store (MLflow, Optuna) did not answer after bounded retries (nothing written); 130 Ctrl-C.
+(one line naming the field and its allowed values, or the study name rule of
+experiments/runtime/study_names.py, printed before anything is written; a study of more than
+MAX_CELLS cells without --yes too); 3 a store (MLflow, Optuna) did not answer after bounded
+retries (nothing written), or failed mid-study: read-only, a full disk, its file gone (a summary
+and one line; the unfinished runs resumable: experiments/runtime/store_faults.py); 130 Ctrl-C.
+`--dry-run` checks all that is checked before a study starts, prints what would run, and stops.
 """
 
 from __future__ import annotations
@@ -19,7 +23,10 @@ from experiments.runtime.processes import (
     default_workers,
     set_training_threads,
 )
+from experiments.runtime.study_names import RULE, check_study_name
 from experiments.study_config import ConfigError, StudyConfig, available_profiles, load_profile
+
+MAX_CELLS = 10_000  # cells of an ablation study run without --yes
 
 log = logging.getLogger("experiments")
 
@@ -45,6 +52,8 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="worker processes (default: $ACRMDN_WORKERS, else one per core)")
     add_threads_option(p)
     add_device_option(p, "train and roll out")
+    p.add_argument("--dry-run", action="store_true", help="check the config and the study name, print what would "
+                   "run, and stop: nothing is written")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
@@ -61,7 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--pack", type=int, default=None, metavar="K", help="train up to K seeds of a cell group "
                     "(task x variant) together as one packed model (default: all of them, split into smaller "
                     "packs while a worker process would otherwise idle; 1: each cell alone)")
-    ab.add_argument("--study-name", default=None, help="parent run name (default: from the profile and config)")
+    ab.add_argument("--study-name", default=None, help="parent run name (default: from the profile and config): "
+                    f"{RULE}")
+    ab.add_argument("--yes", action="store_true", help=f"run a study of more than {MAX_CELLS:,} cells (without it "
+                    "such a study is refused: a typo in --seeds would otherwise fill the store)")
     ab.add_argument("--worker", action="store_true", help="pull cells from a queue shared with other worker "
                     "commands (other hosts too; see docs/scale-out.md); --workers K local processes")
     ab.add_argument("--queue", default=None, help="with --worker: Optuna RDB URL of the cell queue, e.g. "
@@ -75,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--trials", type=int, default=None, help="total trials; a re-run continues to this many")
     sw.add_argument("--sampler", default=None, help="tpe | grid | random")
     sw.add_argument("--storage", default=None, help="Optuna storage URL (default: journal file next to mlflow.db)")
-    sw.add_argument("--study-name", default=None)
+    sw.add_argument("--study-name", default=None, help=f"Optuna study and parent run name: {RULE}")
 
     from experiments.control_studies import add_parsers
 
@@ -105,12 +117,15 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
     are reported before anything is written."""
     if args.workers is None:
         default_workers()  # a bad $ACRMDN_WORKERS: one line now, not once the study has started
+    if args.study_name is not None:
+        check_study_name(args.study_name, "--study-name")
     device = checked_device(args.device)
     if args.command == "ablation":
         cfg = load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
                            seeds=args.seeds, workers=args.workers, pack=args.pack,
                            study_name=args.study_name, device=device)
         checked_device(cfg.device)  # a profile's or --set device
+        _check_cell_count(cfg, args.yes)
         return cfg
     space = args.space.split(",") if args.space else None
     cfg = load_profile(args.profile, args.overrides, workers=args.workers, device=device, **{
@@ -124,6 +139,27 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
     return cfg
 
 
+def _check_cell_count(cfg: StudyConfig, yes: bool) -> None:
+    n = len(cfg.tasks) * len(cfg.variants) * cfg.seeds
+    if n > MAX_CELLS and not yes:
+        raise ConfigError(f"seeds: the study would have {n:,} cells ({len(cfg.tasks)} task(s) x {len(cfg.variants)} "
+                          f"variant(s) x {cfg.seeds} seed(s)), more than {MAX_CELLS:,}; add --yes to run it")
+
+
+def _dry_run(cfg: StudyConfig, command: str) -> int:
+    """What the command would run, once its config and names are checked; nothing is written."""
+    if command == "ablation":
+        n = len(cfg.tasks) * len(cfg.variants) * cfg.seeds
+        print(f"study {cfg.resolved_study_name()!r}: {n} cell(s) ({', '.join(cfg.tasks)} x {', '.join(cfg.variants)} "
+              f"x {cfg.seeds} seed(s)); dry run, nothing written")
+    else:
+        from experiments.sweeps.runner import planned_trials, study_name
+
+        print(f"sweep {study_name(cfg)!r}: {planned_trials(cfg)} trial(s) of {cfg.sweep.task} / {cfg.sweep.variant}; "
+              "dry run, nothing written")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         # started in the background by a shell (`cmd &`), which ignores SIGINT for it: `kill -INT` stops a
@@ -134,7 +170,37 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
     for noisy in ("alembic", "mlflow", "urllib3", "matplotlib"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+    from experiments.cell_run import quiet_store_errors
 
+    quiet_store_errors(level)
+    try:
+        return _command(args)
+    except Exception as exc:  # a store fault mid-command (experiments/runtime/store_faults.py): one line, exit 3
+        from experiments.runtime.store_faults import fault_reason
+
+        reason = fault_reason(exc)
+        if reason is None:
+            raise
+        return store_fault_exit(exc, reason)
+
+
+def store_fault_exit(exc: BaseException, reason: str) -> int:
+    """What a command stopped by a store fault prints: the summary of what finished (stdout), then one error line
+    naming the fault and the file that holds its traceback (stderr); exit code 3."""
+    from experiments.runtime.store_faults import ADVICE, StoreFault, write_details
+
+    outcome = getattr(exc, "outcome", None) if isinstance(exc, StoreFault) else None
+    if outcome is not None:
+        from experiments.ablation import fault_summary
+
+        print(fault_summary(outcome, exc.unfinished))
+    details = write_details(exc)
+    where = f" (traceback in {details})" if details else ""
+    print(_one_line(f"error: the MLflow store failed: {reason}; {ADVICE}{where}"), file=sys.stderr)
+    return 3
+
+
+def _command(args: argparse.Namespace) -> int:
     try:
         set_training_threads(getattr(args, "threads", None))
     except ConfigError as e:
@@ -181,6 +247,8 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as e:
             print(_one_line(f"error: {e}"), file=sys.stderr)
             return 2
+    if args.dry_run:
+        return _dry_run(cfg, args.command)
     from experiments.runtime.store_check import StoreUnavailable, wait_for_stores
     from experiments.runtime.tracking import tracking_uri
 

@@ -33,10 +33,11 @@ import time
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic.dataclasses import dataclass
 
 from experiments.config_errors import ConfigError, validated
+from experiments.runtime.study_names import check_study_name, optional_study_name
 from experiments.study_config import available_profiles, config_hash, parse_override, read_profile, set_path
 from stm.config import STRICT, NonNegativeFloat, PositiveFloat, PositiveInt
 
@@ -64,6 +65,11 @@ class SmoothingSettings:
     skeletons: Skeletons = "auto"
     study_name: str = ""  # "" -> smoothing-<profile>[-<hash>]
 
+    @field_validator("study_name")
+    @classmethod
+    def _study_name(cls, name: str) -> str:
+        return optional_study_name(name)
+
 
 @dataclass(frozen=True, config=STRICT)
 class IDMSettings:
@@ -71,6 +77,11 @@ class IDMSettings:
 
     skeletons: Skeletons = "auto"
     study_name: str = ""  # "" -> idm-<profile>[-<hash>]
+
+    @field_validator("study_name")
+    @classmethod
+    def _study_name(cls, name: str) -> str:
+        return optional_study_name(name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,12 +123,14 @@ def load_config(kind: str, profile: str, overrides: list[str]) -> PostConfig:
         set_path(values, path, value)
     build = _smoothing if kind == "smoothing" else _idm
     study, settings = build(values)
+    cfg = PostConfig(kind, name, study, settings.skeletons, settings.study_name)
     if overrides and not settings.study_name:
         base, _ = build(copy.deepcopy(section))
-        cfg = PostConfig(kind, name, study, settings.skeletons, "")
-        overridden = cfg.params() != dataclasses.replace(cfg, study=base).params()
-        return dataclasses.replace(cfg, overridden=overridden)
-    return PostConfig(kind, name, study, settings.skeletons, settings.study_name)
+        cfg = dataclasses.replace(cfg, overridden=cfg.params() != dataclasses.replace(cfg, study=base).params())
+    for from_stm in (False, True):  # the name a profile file's stem gives (which one is known once the store is read)
+        check_study_name(cfg.resolved_study_name(from_stm), "study name (from the profile's name; rename the file "
+                         "or --set study_name=...)")
+    return cfg
 
 
 def _smoothing(values: dict[str, Any]) -> tuple[SmoothingSettings, SmoothingSettings]:
@@ -262,8 +275,11 @@ def run_postprocess(cfg: PostConfig, progress: bool | None = None) -> tuple[str,
         client.set_terminated(parent_id, "KILLED")
         raise
     except Exception as exc:
-        set_tags(client, parent_id, {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]})
-        client.set_terminated(parent_id, "FAILED")
+        from experiments.runtime.store_faults import fault_reason
+
+        if fault_reason(exc) is None:  # a store fault writes nothing more: the run stays as it was
+            set_tags(client, parent_id, {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]})
+            client.set_terminated(parent_id, "FAILED")
         raise
     bad = [k for k, v in metrics.items() if not np.isfinite(v)]
     if bad:
@@ -296,6 +312,8 @@ def add_parsers(sub) -> None:
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                        help="override a config field, e.g. --set iters=500 (smoothing), --set idm.epochs=5 "
                             "(idm), --set skeletons=stand-in (repeatable)")
+        p.add_argument("--dry-run", action="store_true", help="check the config and the study name, print them, "
+                       "and stop: nothing is written")
         p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
@@ -305,8 +323,13 @@ def main(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(args.command, args.profile, args.overrides)
     except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {e}".replace("\n", "\\n"), file=sys.stderr)
         return 2
+    if args.dry_run:
+        names = dict.fromkeys((cfg.resolved_study_name(False), cfg.resolved_study_name(True)))
+        print(f"{cfg.kind} study {' or '.join(map(repr, names))} (with the stand-in or a trained STM); dry run, "
+              "nothing written")
+        return 0
     from experiments.runtime.store_check import StoreUnavailable, wait_for_stores
     from experiments.runtime.tracking import report_index, tracking_uri
 
@@ -324,6 +347,10 @@ def main(args: argparse.Namespace) -> int:
         print("interrupted; the study's run is marked KILLED", file=sys.stderr)
         return 130
     except Exception as e:  # noqa: BLE001 - recorded on the run (tag error, FAILED); one line here
+        from experiments.runtime.store_faults import fault_reason
+
+        if fault_reason(e) is not None:  # the store itself failed: experiments.cli reports it (exit code 3)
+            raise
         print(f"{cfg.kind} study failed: {type(e).__name__}: {e}".splitlines()[0], file=sys.stderr)
         return 1
     lines = [f"{cfg.kind} study {name!r} (run {run_id}):"]

@@ -10,6 +10,7 @@ from pydantic import BeforeValidator, Field, ValidationInfo, field_validator
 from pydantic.dataclasses import dataclass
 
 from experiments.config_errors import as_tuple
+from experiments.runtime.study_names import optional_study_name
 from stm.config import STRICT, NonNegativeInt, PositiveInt
 
 Sampler = Literal["tpe", "grid", "random"]
@@ -20,6 +21,16 @@ SweepParam = Literal["m", "u", "v", "feedback", "sigma_min"]
 # also commit to one component per segment (segment_component, segment_track) or draw one per step
 RolloutFeedback = Literal["component_mean", "mixture_mean", "sample", "sample_component", "segment_component",
                           "segment_track"]
+# which episodes an evaluation draws: the headline's ("test") or those protocol choices are made on ("validation")
+Split = Literal["test", "validation"]
+StackRestart = Literal["place_pose", "start"]  # where stacking restarts the model between blocks (envs.tasks.stack)
+SuccessCriterion = Literal["strict", "placed"]  # what pick-and-place's success holds (envs.tasks.pickplace)
+SPLITS: tuple[str, ...] = get_args(Split)
+VALIDATION_SEED_OFFSET = 10_000  # validation episodes: eval seed + this + training seed (20,000 + s by default)
+VALIDATION_ROLLOUTS = 34  # episodes per seed and task of a validation evaluation unless told (milestones --split)
+# eval fields left out of a cell's and a study's hash at these defaults: studies from before each field keep theirs
+UNHASHED_DEFAULTS: dict[str, object] = {"mode_repeats": 0, "split": "test", "stack_restart": "place_pose",
+                                        "success": "strict"}
 SAMPLERS: tuple[str, ...] = get_args(Sampler)
 OBJECTIVES: tuple[str, ...] = get_args(Objective)
 SWEEP_PARAMS: tuple[str, ...] = get_args(SweepParam)
@@ -45,6 +56,17 @@ class EvalConfig:
     # tasks with modes: each episode rolled out this many times with distinct sampling seeds, mode use per
     # episode measured (experiments.mode_repeats); 0: not measured. Left out of the hash when 0.
     mode_repeats: NonNegativeInt = 0
+    # "validation": the episodes of eval seed + VALIDATION_SEED_OFFSET + training seed, disjoint from the headline's
+    # ("test"), for choosing a protocol; never for a headline table (experiments.evaluation.split_seed). Left out
+    # of the hash when "test".
+    split: Split = "test"
+    # stacking between the blocks: "place_pose" (restart where the last place ended) or "start" (a scripted lift and
+    # move to a drawn start configuration first; envs.tasks.stack_protocol). Left out of the hash at "place_pose".
+    stack_restart: StackRestart = "place_pose"
+    # pick-and-place (and its changing goal): what an episode's success holds, "strict" (the block placed and the
+    # last grip command open) or "placed" (the block judged alone); both are recorded per episode either way
+    # (envs.tasks.pickplace.run_pick_place). Left out of the hash at "strict".
+    success: SuccessCriterion = "strict"
 
 
 @dataclass(frozen=True, config=STRICT)
@@ -85,6 +107,11 @@ class SweepConfig:
     @classmethod
     def _variant(cls, variant: str) -> str:
         return choice(variant, known_variants())
+
+    @field_validator("study_name")
+    @classmethod
+    def _study_name(cls, name: str) -> str:
+        return optional_study_name(name)
 
     @field_validator("space")
     @classmethod
@@ -180,3 +207,8 @@ def choice(value: Any, allowed: list[str] | tuple[str, ...]) -> Any:
     if value not in allowed:
         raise ValueError(f"{value!r} is not allowed; allowed: {', '.join(allowed)}")
     return value
+
+
+def hashed_eval(values: dict[str, Any]) -> dict[str, Any]:
+    """An eval section as hashed: the fields of UNHASHED_DEFAULTS left out where they hold their default."""
+    return {k: v for k, v in values.items() if k not in UNHASHED_DEFAULTS or v != UNHASHED_DEFAULTS[k]}

@@ -22,6 +22,7 @@ from typing import Any
 from experiments.cell_run import (
     CellResult,
     CellRun,
+    CheckpointMismatch,
     as_cell,
     load_task,
     mark_killed,
@@ -66,7 +67,7 @@ def run_unit(cells: list[Cell], run_ids: list[str], uri: str, progress: bool, le
     if len(cells) == 1:
         return [claimed_cell(cells[0], uri, run_ids[0], progress, level, threads, beat, grace, wait)]
     setup_process(level, threads)
-    client, me = Client(uri), holder_id()
+    client, me = Client(uri, create=False), holder_id()
     got: list[Claimed | int] = [acquire(client, run_id, c.key, me, beat, grace, False)
                                 for c, run_id in zip(cells, run_ids, strict=True)]
     mine = [i for i, g in enumerate(got) if isinstance(g, int)]
@@ -97,7 +98,7 @@ def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], l
 
     setup_process(log_level, threads)
     cells = [as_cell(c) for c in cells]
-    client = Client(uri)
+    client = Client(uri, create=False)
     start = time.perf_counter()
     runs = [CellRun(cell, client, run_id) for cell, run_id in zip(cells, run_ids, strict=True)]
     results: dict[int, CellResult] = {}
@@ -119,6 +120,12 @@ def run_pack(cells: list[Cell | dict[str, Any]], uri: str, run_ids: list[str], l
 
             try:
                 task, demos = load_task(cells[live[0]]) if live else (None, None)
+                for k in list(live):  # a seed whose checkpoint is another config's fails alone, before training
+                    try:
+                        runs[k].check_checkpoint(task)
+                    except CheckpointMismatch as exc:
+                        results[k] = runs[k].failed(exc, start)
+                        live.remove(k)
                 seed_everything(cells[live[0]].seed if live else 0)
                 log.info("pack %s: training seeds %s, %d iterations", cells[0].key.rsplit("/", 1)[0],
                          ", ".join(str(cells[k].seed) for k in live), cells[0].train.iters)

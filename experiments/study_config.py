@@ -36,10 +36,12 @@ from experiments.eval_sweep_config import (  # noqa: F401 - re-exported: the con
     SweepConfig,
     choice,
     evaluation_tasks,
+    hashed_eval,
     known_tasks,
     known_variants,
     training_tasks,
 )
+from experiments.runtime.study_names import RULE, is_study_name, optional_study_name, shown
 from stm.config import STRICT, ModelConfig, NonNegativeInt, PositiveInt, TrainConfig
 
 log = logging.getLogger(__name__)
@@ -100,6 +102,11 @@ class StudyConfig:
             choice(t, allowed)
         return tasks
 
+    @field_validator("study_name")
+    @classmethod
+    def _study_name(cls, name: str) -> str:
+        return optional_study_name(name)
+
     @field_validator("device")
     @classmethod
     def _device(cls, device: str) -> str:
@@ -131,8 +138,7 @@ class StudyConfig:
         """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor
         workers/pack/keep_checkpoints/device)."""
         d = self.to_dict()
-        if not d["eval"].get("mode_repeats"):  # absent when 0, as in Cell.eval_dict: earlier studies keep their hash
-            d["eval"].pop("mode_repeats", None)
+        d["eval"] = hashed_eval(d["eval"])  # options at their default absent, as in Cell.eval_dict: earlier hashes stay
         for key in TrainConfig.UNHASHED:  # a route, as in Cell.resolved: the same study on either
             d["train"].pop(key, None)
             for task, sections in list(d["per_task"].items()):
@@ -156,12 +162,15 @@ def derived_study_name(cfg: StudyConfig, base: StudyConfig) -> str:
     """The profile's name for the profile as it is; else <profile>-<hash> of what differs: the
     config (study_hash), and the tasks and variants when they are not the profile's, so that
     studies of other cells never share (and overwrite) one parent run. Seeds and workers select
-    cells of the same study (a re-run with more seeds continues it)."""
+    cells of the same study (a re-run with more seeds continues it). A study evaluated on the validation episodes
+    (eval.split) says so at the end of its name."""
+    suffix = "-validation" if cfg.eval.split == "validation" and base.eval.split != "validation" else ""
     same_cells = (sorted(cfg.tasks), sorted(cfg.variants)) == (sorted(base.tasks), sorted(base.variants))
     if same_cells:
-        return cfg.profile if cfg.study_hash() == base.study_hash() else f"{cfg.profile}-{cfg.study_hash()[:8]}"
+        same = cfg.study_hash() == base.study_hash()
+        return cfg.profile if same else f"{cfg.profile}-{cfg.study_hash()[:8]}{suffix}"
     selection = config_hash({"study": cfg.study_hash(), "tasks": sorted(cfg.tasks), "variants": sorted(cfg.variants)})
-    return f"{cfg.profile}-{selection[:8]}"
+    return f"{cfg.profile}-{selection[:8]}{suffix}"
 
 
 def config_hash(payload: Any) -> str:
@@ -225,33 +234,38 @@ def study_config(profile: str, file_raw: dict[str, Any], overrides: list[str] | 
     file_raw = {k: v for k, v in file_raw.items() if k not in POSTPROCESS_SECTIONS}
     raw = {**copy.deepcopy(file_raw), "profile": profile}
     parsed = [(item, *parse_override(item)) for item in overrides]
-    for item, path, _ in parsed:
-        _command_line_wins(raw, path, item)
+    notes = [note for item, path, _ in parsed if (note := _command_line_wins(raw, path, item))]
     for _, path, value in parsed:
         set_path(raw, path, value)
     for key, value in cli.items():
         if value is not None:
             set_path(raw, key.split("."), value)
     cfg = from_dict(raw)
-    if cfg.study_name:
-        return cfg
-    return dataclasses.replace(cfg, study_name=derived_study_name(cfg, from_dict({**file_raw, "profile": profile})))
+    if not cfg.study_name:
+        name = derived_study_name(cfg, from_dict({**file_raw, "profile": profile}))
+        if not is_study_name(name):  # a profile file whose stem is no study name (a space, a quote, too long)
+            raise ConfigError(f"profile: the study name it gives, {shown(name)}, is not allowed ({RULE}); rename "
+                              "the profile file or pass --study-name")
+        cfg = dataclasses.replace(cfg, study_name=name)
+    for note in notes:  # once the config is valid: a command that is refused prints its one error line only
+        log.warning("%s", note)
+    return cfg
 
 
-def _command_line_wins(raw: dict[str, Any], path: list[str], item: str) -> None:
+def _command_line_wins(raw: dict[str, Any], path: list[str], item: str) -> str:
     """`--set train.u=3` is for every task: a per_task value of the profile for the same field would
-    shadow it, so it is dropped for this run (and one line says so)."""
+    shadow it, so it is dropped for this run; the line that says so ("" when nothing was dropped)."""
     if len(path) != 2 or path[0] not in STM_SECTIONS or not isinstance(raw.get("per_task"), dict):
-        return
+        return ""
     section, key = path
     dropped = []
     for task, sections in raw["per_task"].items():
         values = sections.get(section) if isinstance(sections, dict) else None
         if isinstance(values, dict) and key in values:
             dropped.append(f"per_task.{task}.{section}.{key} = {values.pop(key)!r}")
-    if dropped:
-        log.warning("--set %s applies to every task: it replaces the profile's %s for this run", item,
-                    ", ".join(dropped))
+    if not dropped:
+        return ""
+    return f"--set {item} applies to every task: it replaces the profile's {', '.join(dropped)} for this run"
 
 
 def parse_override(item: str) -> tuple[list[str], Any]:
@@ -316,7 +330,12 @@ def _section(name: str, values: Any) -> dict[str, Any]:
 
 
 def _stm_values(name: str, values: dict[str, Any], cls: type) -> dict[str, Any]:
-    """The section's values as the stm dataclass types them (checked against its defaults)."""
+    """The section's values as the stm dataclass types them (checked against its defaults). A study trains at least
+    one iteration: with none a cell would evaluate an untrained model and report it as a result (stm's TrainConfig
+    allows 0 for its own callers)."""
+    iters = values.get("iters")
+    if cls is TrainConfig and isinstance(iters, int) and not isinstance(iters, bool) and iters < 1:
+        raise ConfigError(f"{name}.iters: {iters!r} is not allowed; allowed: integers >= 1")
     typed = validated(cls, values, name)
     return {k: getattr(typed, k) for k in values}
 

@@ -6,9 +6,10 @@ reports/RESULTS.md (+ its small PNGs in reports/figures/) from reports/RESULTS.t
 `nox -s report -- --results` is the one command (see reports/results/writer.py for the placeholders).
 `--results --exports reports/studies` builds it from the study exports in the repository instead of a store.
 
-`python -m reports export --study NAME_OR_RUN_ID [--out reports/studies] [--with-checkpoints]`: write a study's
-compact export, or a resumable snapshot (reports/data/export.py); `python -m reports import FOLDER [...]`: read exports
-into a store (reports/data/studyimport.py)."""
+`python -m reports export --study NAME_OR_RUN_ID [--out reports/studies] [--with-models [--models-at N ...]]
+[--with-checkpoints]`: write a study's compact export (with its models' weights on request), or a resumable snapshot
+(reports/data/export.py); `python -m reports import FOLDER [...]`: read exports into a store
+(reports/data/studyimport.py)."""
 
 from __future__ import annotations
 
@@ -66,7 +67,16 @@ def parse_export_args(argv: list[str]) -> argparse.Namespace:
                    "--with-checkpoints)")
     p.add_argument("--with-checkpoints", action="store_true", help="a resumable snapshot: each unfinished cell's "
                    "last checkpoint and every kept checkpoint too (megabytes per cell; kept out of git)")
-    return p.parse_args(argv)
+    p.add_argument("--with-models", action="store_true", help="each finished cell's final model too, as weights "
+                   "alone (a few MB per model); remembered: later exports of the study carry them as well")
+    p.add_argument("--models-at", type=int, nargs="+", metavar="N", help="with --with-models: also the weights of "
+                   "the checkpoints the cells kept at these iterations (keep_checkpoints; default: none)")
+    args = p.parse_args(argv)
+    if args.models_at and not args.with_models:
+        p.error("--models-at chooses the models of --with-models; add --with-models")
+    if args.models_at and min(args.models_at) < 1:
+        p.error(f"--models-at takes iterations >= 1, got {min(args.models_at)}")
+    return args
 
 
 def parse_import_args(argv: list[str]) -> argparse.Namespace:
@@ -88,18 +98,23 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     if args.results:
         return results_main(args)
+    from experiments.runtime import study_names as names
     from reports.data.store import Store, StoreError
     from reports.study_report.build import build_report, nothing_to_report
     from reports.study_report.html import root_index
 
     start = time.perf_counter()
     try:
+        if args.study is not None:  # a parent run id (hex) obeys the study name rule too
+            names.check_study_name(args.study, "--study")
         store = Store(args.tracking_uri)
         studies = store.studies(args.experiment, args.study)
-    except StoreError as exc:
+    except (StoreError, names.StudyNameError) as exc:
         print(f"reports: error: {exc}", file=sys.stderr)
         return 2
-    empty = {s.run_id: nothing_to_report(s) for s in studies}
+    # a study the store holds under a name from before the rule has no folder of its own: left out, never cleaned
+    empty = {s.run_id: nothing_to_report(s) if names.is_study_name(s.name) else
+             f"{s.kind} study {names.shown(s.name)}: its name breaks the rule ({names.RULE})" for s in studies}
     if all(empty.values()):  # nothing to show: say why, and leave no empty output folder behind
         print(f"reports: error: nothing to report: {'; '.join(empty.values())}", file=sys.stderr)
         return 2
@@ -113,7 +128,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     built = []
     for study in studies:
-        report = build_report(study, args.out, log_artifacts=not args.no_log_artifacts)
+        try:
+            report = build_report(study, args.out, log_artifacts=not args.no_log_artifacts)
+        except names.UnsafeFolder as exc:
+            print(f"reports: error: {exc}", file=sys.stderr)
+            return 2
         built.append((study, report.index))
         gaps = f", {len(report.gaps)} gap(s)" if report.gaps else ""
         print(f"{study.kind} study {study.name!r} ({study.profile}): {report.index}{gaps} "
@@ -133,11 +152,15 @@ def _error(exc: Exception | str) -> int:
 
 
 def results_main(args: argparse.Namespace) -> int:
+    from experiments.runtime.study_names import StudyNameError, check_study_name
     from reports.data.store import Store, StoreError
     from reports.results.writer import ResultsError, write_results
 
     start = time.perf_counter()
     try:
+        for flag, ident in [("--ablation", args.ablation), *(("--sweep", name) for name in args.sweep or [])]:
+            if ident is not None:  # a study name or a parent run id (hex): the rule holds for both
+                check_study_name(ident, flag)
         if args.exports:
             from reports.data.export_store import ExportStore
 
@@ -146,20 +169,24 @@ def results_main(args: argparse.Namespace) -> int:
             store = Store(args.tracking_uri)
         out = write_results(store, args.template, args.results_out, args.figures_dir, args.ablation, args.sweep,
                             exports=args.exports)
-    except (StoreError, ResultsError) as exc:
+    except (StoreError, ResultsError, StudyNameError) as exc:
         return _error(exc)
     print(f"results: {out} (figures in {args.figures_dir}) [{time.perf_counter() - start:.1f} s]")
     return 0
 
 
 def export_main(args: argparse.Namespace) -> int:
+    from experiments.cell_run import WEIGHTS_DIR
+    from experiments.runtime.study_names import StudyNameError, UnsafeFolder, check_study_name
     from reports.data.export import ExportError, export_study, size_text
     from reports.data.store import Store, StoreError
 
     start = time.perf_counter()
     try:
-        folder, doc, size = export_study(Store(args.tracking_uri), args.study, args.out, args.with_checkpoints)
-    except (StoreError, ExportError) as exc:
+        check_study_name(args.study, "--study")  # a study name or a parent run id (hex): the rule holds for both
+        folder, doc, size = export_study(Store(args.tracking_uri), args.study, args.out, args.with_checkpoints,
+                                         args.with_models, args.models_at)
+    except (StoreError, ExportError, StudyNameError, UnsafeFolder) as exc:
         return _error(exc)
     except OSError as exc:
         return _error(f"cannot write the export under {args.out or 'its folder'}: {exc.strerror or exc}")
@@ -167,14 +194,16 @@ def export_main(args: argparse.Namespace) -> int:
         print(f"reports: warning: the study's parent run is {doc['runs'][0]['status']}: export it again once it "
               "finished", file=sys.stderr)
     n_art = sum(len(r["artifacts"]) for r in doc["runs"])
-    print(f"export: {folder} ({len(doc['runs'])} runs, {n_art} artifacts, {size_text(size)}) "
+    n_models = sum(p.startswith(f"{WEIGHTS_DIR}/") for r in doc["runs"] for p in r["artifacts"])
+    models = f", {n_models} models" if n_models else ""
+    print(f"export: {folder} ({len(doc['runs'])} runs, {n_art} artifacts{models}, {size_text(size)}) "
           f"[{time.perf_counter() - start:.1f} s]")
     return 0
 
 
 def import_main(args: argparse.Namespace) -> int:
     from experiments.runtime.tracking import tracking_uri
-    from reports.data.export import ExportError
+    from reports.data.export import FORMAT_UNVERIFIED, ExportError
     from reports.data.store import StoreError
     from reports.data.studyimport import import_exports
 
@@ -186,7 +215,9 @@ def import_main(args: argparse.Namespace) -> int:
         return _error(exc)
     for folder, doc, new in done:
         what = f"imported ({len(doc['runs'])} runs)" if new else "skipped (already imported from this export)"
-        print(f"import: {doc['study_name']!r} from {folder}: {what}")
+        unverified = ", records unverified (an export from before their digest)" \
+            if doc["format"] == FORMAT_UNVERIFIED else ""
+        print(f"import: {doc['study_name']!r} from {folder}: {what}{unverified}")
     return 0
 
 

@@ -18,7 +18,7 @@ from experiments.study_config import OBJECTIVES, SAMPLERS, ConfigError, parse_ov
 from stm.config import FEEDBACKS, HEADS, PHI_MODES
 
 # integer fields and the smallest allowed value
-INT_FIELDS = {"train.iters": 0, "train.batch_size": 1, "train.u": 1, "train.v": 0, "train.val_episodes": 1,
+INT_FIELDS = {"train.iters": 1, "train.batch_size": 1, "train.u": 1, "train.v": 0, "train.val_episodes": 1,
               "model.hidden_size": 1, "model.num_layers": 1, "model.mixtures": 1, "eval.rollouts": 1,
               "eval.figures": 0, "seeds": 1, "workers": 0, "sweep.trials": 1, "sweep.heartbeat": 1}
 CHOICES = {"train.feedback": FEEDBACKS, "eval.feedback": FEEDBACKS, "model.head": HEADS,

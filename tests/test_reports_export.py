@@ -18,7 +18,7 @@ from cli_helpers import cli_env
 from mlflow import MlflowClient
 
 from reports.__main__ import main
-from reports.data.export import MAX_HISTORY, RUNS_FILE, thin
+from reports.data.export import FORMAT, FORMAT_UNVERIFIED, MAX_HISTORY, RECORDS_KEY, RUNS_FILE, records_digest, thin
 
 pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[1]
@@ -129,19 +129,80 @@ def test_export_names_no_path_of_this_machine(results_store, exports):
 
 
 def test_reexport_gives_the_same_bytes_and_drops_stale_files(results_store, exports, tmp_path, capsys):
+    """A re-export removes what the earlier export of the study listed and this one does not (and the folders that
+    leaves empty), and nothing else: a file the export never wrote stays."""
     folder, doc = _export_of(exports, "ablation")
     out = tmp_path / "again"
     stale = out / folder.name / "artifacts" / "old" / "rollouts" / "gone.npz"
     stale.parent.mkdir(parents=True)
     stale.write_bytes(b"x")
-    (out / folder.name / RUNS_FILE).write_text("{}")
+    foreign = out / folder.name / "notes.txt"
+    foreign.write_text("the user's")
+    earlier = {**doc, "runs": [{**doc["runs"][0], "run_id": "old", "artifacts": {"rollouts/gone.npz": "0"}}]}
+    (out / folder.name / RUNS_FILE).write_text(json.dumps(earlier))
     assert main(["export", "--study", doc["runs"][0]["run_id"], "--tracking-uri", _uri(results_store),
                  "--out", str(out)]) == 0
+    foreign.unlink()
     assert _tree(out / folder.name) == _tree(folder)  # by run id, another process, the same bytes; stale gone
+    assert not (out / folder.name / "artifacts" / "old").exists()
     assert str(out / folder.name) in capsys.readouterr().out
     assert main(["export", "--study", "nope", "--tracking-uri", _uri(results_store), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "unknown study 'nope'" in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("held", ["other", "none", "link"])
+def test_an_export_never_replaces_what_is_not_its_own(results_store, exports, tmp_path, capsys, held):
+    """The folder of the study's name holds another study's export, a folder without a readable runs.json, or a link
+    out of --out: one line, exit 2, nothing written or deleted there."""
+    folder, doc = _export_of(exports, "ablation")
+    out = tmp_path / "out"
+    target = out / folder.name
+    if held == "link":
+        (tmp_path / "elsewhere").mkdir()
+        (tmp_path / "elsewhere" / "keep.txt").write_text("keep")
+        out.mkdir()
+        target.symlink_to(tmp_path / "elsewhere")
+        message = "outside"
+    else:
+        shutil.copytree(folder, target)
+        runs = target / RUNS_FILE
+        if held == "other":
+            runs.write_text(runs.read_text().replace(f'"study_name": "{doc["study_name"]}"', '"study_name": "other"'))
+            message = "holds the export of study 'other'"
+        else:
+            runs.unlink()
+            message = "is not a study export"
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert main(["export", "--study", doc["study_name"], "--tracking-uri", _uri(results_store),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_an_export_carries_the_digest_of_its_records(exports):
+    for kind in ("ablation", "sweep"):
+        _, doc = _export_of(exports, kind)
+        assert doc["format"] == FORMAT and doc[RECORDS_KEY] == records_digest(doc)
+
+
+def test_the_committed_exports_are_read_as_they_are():
+    """Every export in reports/studies/ lies in the folder of its study's name, a name by the rule, and is read: of
+    the format from before the digest (their records unverified, and the import says so), never rewritten."""
+    from experiments.runtime.study_names import is_study_name
+    from reports.data.studyimport import export_folders, read_export
+
+    for folder in export_folders(REPO / "reports" / "studies"):
+        doc, _ = read_export(folder)
+        assert doc["study_name"] == folder.name and is_study_name(folder.name), folder
+        assert doc["format"] in (FORMAT_UNVERIFIED, FORMAT) and (doc["format"] == FORMAT) == (RECORDS_KEY in doc)
+
+
+def test_an_unverified_export_imports_and_says_so(tmp_path, capsys):
+    folder = REPO / "reports" / "studies" / "paper-reacher-15demos"
+    assert _import(folder, tmp_path) == 0
+    assert "records unverified" in capsys.readouterr().out
 
 
 def test_long_histories_are_thinned_keeping_the_latest():
@@ -210,12 +271,22 @@ def _corrupt(src: Path, dst: Path, how: str) -> str:
         npz.unlink()
         return "missing artifact"
     doc = json.loads((dst / RUNS_FILE).read_text())
+    if how == "tampered":  # a record edited after the export: the learning rate the run did not train with
+        doc["runs"][1]["params"]["train.lr"] = "0.5"
+        (dst / RUNS_FILE).write_text(json.dumps(doc))
+        return "its records do not match their digest"
+    if how == "renamed":  # edited, digest recomputed: the name breaks the rule
+        doc["study_name"] = doc["runs"][0]["tags"]["study_name"] = "../x"
+        doc[RECORDS_KEY] = records_digest(doc)
+        (dst / RUNS_FILE).write_text(json.dumps(doc))
+        return "study_name '../x': a study name is"
     doc["runs"][2]["parent_run_id"] = "f" * 32
+    doc[RECORDS_KEY] = records_digest(doc)  # (as an exporter with this bug would write it)
     (dst / RUNS_FILE).write_text(json.dumps(doc))
     return "has no parent before it"
 
 
-@pytest.mark.parametrize("how", ["truncated", "changed", "missing", "orphan"])
+@pytest.mark.parametrize("how", ["truncated", "changed", "missing", "orphan", "tampered", "renamed"])
 def test_corrupt_export_is_one_line_and_imports_nothing(exports, tmp_path, capsys, how):
     src, _ = _export_of(exports, "ablation")
     bad = tmp_path / "exports" / "bad"
@@ -285,6 +356,7 @@ def _renamed_copy(src: Path, dst: Path, name: str) -> None:
         for key in [k for k in run["metrics"] if k.endswith("/success_rate")]:
             run["metrics"][key] = 1.0
             run["histories"][key]["points"] = [[p[0], p[1], 1.0] for p in run["histories"][key]["points"]]
+    doc[RECORDS_KEY] = records_digest(doc)  # a study of its own, not an edited one
     (dst / RUNS_FILE).write_text(json.dumps(doc))
 
 
@@ -297,8 +369,8 @@ def test_template_with_several_studies(exports, tmp_path):
                 '{{ figure("success_bars", study="other") }}\n\n{{ command }}\n')
     rc, text = _results(tmp_path, template, "--exports", str(tmp_path / "studies"), "--ablation", name)
     assert rc == 0
-    header = next(line for line in text.splitlines() if line.startswith("|  "))
-    assert f"| {name}" in header and "| other" in header  # provenance: both studies
+    provenance = text.split("| study ")[1].split("\n\n")[0]
+    assert f"| {name} " in provenance and "| other " in provenance  # provenance: one row per study, both
     tables = text.split("### Success rate (Table I, extended)")[1:]
     rates = [re.findall(r"^\| reacher +\| [^|]+\| (\d+%)", t, re.M) for t in tables]
     logged = [f"{100 * r['metrics']['reacher/success_rate']:.0f}%" for r in doc["runs"][1:]]

@@ -180,7 +180,7 @@ def _work(cfg_dict: dict, queue_url: str, uri: str, experiment_id: str, parent_i
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     cfg = from_dict(cfg_dict)
     cells = {c.config_hash: c for c in build_cells(cfg)}
-    client = Client(uri)
+    client = Client(uri, create=False)
     study = optuna.load_study(study_name=QUEUE_PREFIX + cfg.resolved_study_name(),
                               storage=open_storage(queue_url, cfg.sweep, uri),
                               sampler=optuna.samplers.RandomSampler())

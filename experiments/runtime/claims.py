@@ -126,7 +126,7 @@ class Beat:
             try:
                 set_tags(self.client, self.run_id, {BEAT_TAG: f"{self.n}:{time.time():.0f}"})
             except Exception as exc:  # a missed beat; the next one may get through
-                log.warning("claim beat on run %s failed: %s", self.run_id, exc)
+                log.warning("claim beat on run %s failed: %s", self.run_id, str(exc).splitlines()[0][:300])
 
     def release(self) -> None:
         self.stopped.set()
@@ -169,7 +169,7 @@ def claimed_cell(cell: Cell, uri: str, run_id: str, progress: bool, level: int, 
     from experiments.cell_run import run_cell
 
     logging.basicConfig(level=level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
-    client = Client(uri)
+    client = Client(uri, create=False)
     n = acquire(client, run_id, cell.key, holder_id(), beat, grace, wait)
     if isinstance(n, Claimed):
         return n

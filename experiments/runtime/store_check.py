@@ -2,8 +2,9 @@
 (a local SQLite file that may be locked by another writer, or a tracking server that may be
 down) and an Optuna RDB storage / cell queue (PostgreSQL). A store that may come back (locked,
 refused, timed out) is tried a bounded number of times with exponential backoff; one that
-cannot (a missing folder, a folder we may not write to, a file that is not a database) fails
-at once. Either way: one clear error, and nothing has been written.
+cannot (a missing folder, a folder we may not write to, a store file that is read-only or whose
+disk is full, a file that is not a database) fails at once. Faults that come later, mid-study:
+experiments/runtime/store_faults.py. Either way: one clear error, and nothing has been written.
 
 ACRMDN_STORE_ATTEMPTS (default 6) and ACRMDN_STORE_DELAY (first wait in seconds, default 0.5,
 doubling: 0.5 + 1 + 2 + 4 + 8 = 15.5 s in all by default) tune the retries.
@@ -50,10 +51,17 @@ def _probe_sqlite(path: Path) -> None:
     con = sqlite3.connect(path, timeout=0.2)
     try:
         con.execute("BEGIN IMMEDIATE")  # takes (and drops) the write lock a study would need
+        # a file we may not write opens read-only, and BEGIN IMMEDIATE succeeds on it all the same: a write,
+        # rolled back, is what fails on it (and on a disk with no room for the journal)
+        con.execute("CREATE TABLE acrmdn_write_probe (x)")
         con.rollback()
     except sqlite3.DatabaseError as exc:  # OperationalError (locked, busy) is a subclass: transient
         if isinstance(exc, sqlite3.OperationalError) and "locked" in str(exc):
             raise
+        if "readonly" in str(exc):
+            raise _Permanent("the file is read-only; make it writable (chmod u+w) or set MLFLOW_TRACKING_URI") from None
+        if "full" in str(exc):
+            raise _Permanent("its disk is full; free space and re-run") from None
         raise _Permanent(f"{path} is not a usable SQLite database ({exc}); move it aside or set "
                          "MLFLOW_TRACKING_URI") from None
     finally:

@@ -28,6 +28,7 @@ from mlflow.tracking import MlflowClient
 
 from experiments.runtime.backend_internals import is_param_conflict, is_transient_store_error
 from experiments.runtime.schema_template import create_from_template
+from experiments.runtime.store_faults import StoreFault, StoreWatch, is_lasting
 
 log = logging.getLogger(__name__)
 
@@ -73,27 +74,41 @@ def schema_lock(db: Path):
 
 
 def with_retries(fn: Callable, attempts: int = 8, base_delay: float = 0.05) -> Callable:
-    """Retry a store call on SQLite lock contention (exponential backoff with full jitter)."""
-    return tenacity.retry(retry=tenacity.retry_if_exception(is_transient_store_error), reraise=True,
+    """Retry a store call on SQLite lock contention (exponential backoff with full jitter); not a store that is
+    read-only, full or gone (experiments/runtime/store_faults.py): waiting does not fix those."""
+
+    def transient(exc: BaseException) -> bool:
+        return is_transient_store_error(exc) and not is_lasting(exc)
+
+    return tenacity.retry(retry=tenacity.retry_if_exception(transient), reraise=True,
                           stop=tenacity.stop_after_attempt(attempts),
                           wait=tenacity.wait_random_exponential(multiplier=base_delay, max=10),
                           before_sleep=tenacity.before_sleep_log(log, logging.DEBUG))(fn)
 
 
 class Client:
-    """MlflowClient whose every method retries on transient SQLite errors."""
+    """MlflowClient whose every method retries on transient SQLite errors. `create=False` (the processes that join a
+    study the main process started): a local store that does not exist is a StoreFault (it disappeared), not a new
+    empty store. `check_store()` raises StoreFault once the store file is not the one this client opened."""
 
-    def __init__(self, uri: str | None = None):
+    def __init__(self, uri: str | None = None, create: bool = True):
         self.uri = uri or tracking_uri()
         db = sqlite_path(self.uri)
+        self._watch = StoreWatch(None)
         if db is None:
             self._client = MlflowClient(tracking_uri=self.uri)
             return
+        if not create and not db.exists():
+            raise StoreFault(f"the store file {db} was deleted or moved while the study ran")
         with schema_lock(db):  # opening a fresh store creates (migrates) its schema: one process at a time
             if not db.exists():
                 create_from_template(db)  # a copy of an empty store: seconds faster than MLflow's migrations
             self._client = with_retries(MlflowClient)(tracking_uri=self.uri)
             with_retries(self._client.search_experiments)(max_results=1)
+        self._watch = StoreWatch(db)
+
+    def check_store(self) -> None:
+        self._watch.check()
 
     def __getattr__(self, name: str) -> Any:
         attr = getattr(self._client, name)
@@ -138,13 +153,15 @@ def find_parent_run(client: Client, experiment_id: str, study_name: str):
 
 
 def file_safe(name: str) -> str:
-    """`name` as (part of) a file or folder name."""
+    """`name` as part of a file name (a task's, or a study's in RESULTS.md's figure names); never a study's folder,
+    which is the study name itself (experiments.runtime.study_names)."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
 
 
 def report_index(study_name: str) -> str:
-    """Where `python -m reports` writes a study's report page (in the working directory)."""
-    return f"reports/out/{file_safe(study_name)}/index.html"
+    """Where `python -m reports` writes a study's report page (in the working directory): reports/out/<name>/, the
+    name being a folder name by the study name rule (experiments.runtime.study_names)."""
+    return f"reports/out/{study_name}/index.html"
 
 
 def settle_window(uri: str) -> float:

@@ -121,7 +121,7 @@ class MlflowTrialLink:
     @property
     def client(self) -> Client:
         if self._client is None:
-            self._client = Client(self.uri)
+            self._client = Client(self.uri, create=False)
         return self._client
 
     def start(self, trial) -> str:

@@ -85,6 +85,7 @@ from experiments.runtime.optuna_storage import (
     trials_in,
 )
 from experiments.runtime.processes import default_workers, training_threads, worker_pool
+from experiments.runtime.study_names import check_study_name
 from experiments.runtime.tracking import (
     NOTE_TAG,
     SWEEP,
@@ -172,6 +173,7 @@ def study_name(cfg: StudyConfig) -> str:
 
 def check_sweep(cfg: StudyConfig) -> None:
     """Config errors a sweep would hit later, raised now (before anything is written)."""
+    check_study_name(study_name(cfg), "sweep study name (<task>-<variant>-<profile> unless --study-name)")
     # the pruner needs intermediate values whatever the objective
     if cfg.task_config(cfg.sweep.task).train.val_every <= 0:
         raise ConfigError("train.val_every: must be > 0 for a sweep (the pruner and objective read the "

@@ -2,8 +2,10 @@
 
     python -m reports import reports/studies/<slug> [...] [--tracking-uri URI]
 
-The export is validated whole first (its runs.json, and every artifact against its sha256): a corrupt or partial
-export is one line naming what is wrong, and nothing is written. Then the runs are created in the experiment of
+The export is validated whole first (its runs.json, its records against their digest, and every artifact against its
+sha256): a corrupt, partial or edited export is one line naming what is wrong, and nothing is written. An export of
+the format before the digest (acrmdn-study-export/1, reports.data.export.FORMAT_UNVERIFIED) is read as it is: its
+records are unverified, which the import says. Then the runs are created in the experiment of
 the study's kind (created if missing): the original start times, run names, params, tags, metric histories (steps
 and timestamps), artifacts, status and end time; each child's
 parent link points to the new parent run, and every run keeps its original id in tag `export.run_id` (reports
@@ -11,6 +13,10 @@ show that id). A run that fails midway deletes the runs it created.
 
 A cell's claim (experiments/runtime/claims.py: its `claim.<n>` params and beat tag) is left behind: it names a
 process of the exporting store, and a snapshot's unfinished cells (reports.data.export) are to be resumed here.
+
+An export that carries models (`reports export --with-models`) brings each as the run's artifact
+weights_at/<iteration>/weights.pt, with its config/config.json: `python -m experiments milestones --study NAME` then
+evaluates them in this store as it evaluates kept checkpoints in the original one.
 
 Importing twice does not duplicate: a study whose parent carries the same export digest (the sha256 of runs.json)
 is skipped; a different study of the same study_name already in the store is an error (exit 2): import it into
@@ -25,8 +31,9 @@ from pathlib import Path
 from typing import Any
 
 from experiments.runtime.claims import BEAT_TAG, CLAIM
+from experiments.runtime.study_names import RULE, is_study_name, shown
 from experiments.runtime.tracking import PARENT_TAG, Client, get_or_create_experiment, sqlite_path
-from reports.data.export import FORMAT, RUN_NAME_TAG, RUNS_FILE, ExportError
+from reports.data.export import FORMAT, FORMATS, RECORDS_KEY, RUN_NAME_TAG, RUNS_FILE, ExportError, records_digest
 from reports.data.store import SOURCE_RUN_TAG, Store
 
 DIGEST_TAG = "export.digest"  # on the imported parent: the sha256 of the runs.json it came from
@@ -50,11 +57,16 @@ def read_export(folder: Path) -> tuple[dict, str]:
         raise _fail(folder, f"cannot read {RUNS_FILE} ({exc.strerror or exc})") from None
     except ValueError as exc:
         raise _fail(folder, f"{RUNS_FILE} is not JSON ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise _fail(folder, f"{RUNS_FILE} is not of format {FORMAT}")
+    if not isinstance(doc, dict) or doc.get("format") not in FORMATS:
+        raise _fail(folder, f"{RUNS_FILE} is not of format {' or '.join(FORMATS)}")
     for key in ("study_name", "experiment"):
         if not isinstance(doc.get(key), str) or not doc[key]:
             raise _fail(folder, f"no {key}")
+    if not is_study_name(doc["study_name"]):
+        raise _fail(folder, f"study_name {shown(doc['study_name'])}: {RULE}")
+    if doc["format"] == FORMAT and doc.get(RECORDS_KEY) != records_digest(doc):
+        raise _fail(folder, f"its records do not match their digest ({RECORDS_KEY}): {RUNS_FILE} was edited after "
+                    "the export")
     runs = doc.get("runs")
     if not isinstance(runs, list) or not runs:
         raise _fail(folder, "no runs")

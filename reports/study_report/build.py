@@ -1,4 +1,5 @@
-"""Build one study's report: tables + figures into <out>/<study>/, index.html, artifacts of the parent run."""
+"""Build one study's report: tables + figures into <out>/<study>/ (the study's name, checked to stay inside <out>),
+index.html, artifacts of the parent run. A build removes only what the previous build wrote there (MANIFEST)."""
 
 from __future__ import annotations
 
@@ -11,16 +12,17 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 
 from experiments.runtime.backend_internals import artifact_repository
+from experiments.runtime.study_names import inside, study_folder
 from reports.data.store import Study
 from reports.plotting import FigureResult
-from reports.study_report import ablation_figures, control_report, sweep_summary, tables, trajectories
+from reports.study_report import ablation_figures, control_report, sweep_summary, table_one, tables, trajectories
 from reports.study_report.html import study_index
 from reports.study_report.tables import Table
 
 log = logging.getLogger(__name__)
 
 ARTIFACT_PATH = "report"  # folder of the parent run's artifacts that holds the report
-OUTPUT_SUFFIXES = {".png", ".pdf", ".md", ".html", ".tex", ".csv"}
+MANIFEST = ".report-files"  # in a study's report folder: the files the last build wrote there, one path a line
 
 
 @dataclass
@@ -62,12 +64,20 @@ def _figure(name: str, build: Callable[[], FigureResult]) -> FigureResult:
 
 
 def _ablation_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureResult]]:
+    """In RESULTS.md's order: Table I, the paper's comparisons, the circles, the compute, then the extended success
+    table and the metric dump."""
+    from reports.results.paper_claims import claims_rows, claims_table  # the comparisons RESULTS.md quotes too
+
     success = tables.success_summary(study)
     circle = tables.circle_summary(study)
     train = tables.train_time_summary(study)
-    tabs = [tables.paper_success_table(success, study), tables.circle_table(circle, study),
-            tables.train_time_table(train, study), tables.generic_metrics_table(study)]
-    figs = [_figure("success_bars", lambda: ablation_figures.success_bars(success, study, folder)),
+    sources = table_one.own_sources(study)
+    rows = table_one.table_one_rows(sources)
+    tabs = [table_one.table_one_table(rows, sources), claims_table(claims_rows(sources)),
+            tables.circle_table(circle, study), tables.train_time_table(train, study),
+            tables.paper_success_table(success, study), tables.generic_metrics_table(study)]
+    figs = [_figure(table_one.NAME, lambda: table_one.table_one_figure(rows, folder)),
+            _figure("success_bars", lambda: ablation_figures.success_bars(success, study, folder)),
             _figure("circles", lambda: trajectories.circles(study, folder)),
             _figure("compute_time", lambda: ablation_figures.compute_time(study, folder)),
             _figure("train_time", lambda: ablation_figures.train_time(train, study, folder)),
@@ -86,13 +96,29 @@ def _sweep_parts(study: Study, folder: Path) -> tuple[list[Table], list[FigureRe
     return tabs, figs
 
 
+def _files(folder: Path) -> set[Path]:
+    return {p for p in folder.rglob("*") if p.is_file()} if folder.is_dir() else set()
+
+
 def _clear(folder: Path) -> None:
-    """Remove the outputs of an earlier build (only our own file types, only this folder), so that a
-    figure that became a gap does not linger."""
-    if folder.is_dir():
-        for p in folder.iterdir():
-            if p.is_file() and p.suffix in OUTPUT_SUFFIXES:
-                p.unlink()
+    """Remove the files an earlier build wrote, so that a figure that became a gap does not linger: those its
+    manifest lists, each checked to lie in the folder; anything else there (a file of the user's, a report
+    from before manifests) is left alone."""
+    manifest = folder / MANIFEST
+    if not manifest.is_file():
+        return
+    for rel in manifest.read_text().splitlines():
+        if rel:
+            path = inside(folder, folder / rel)
+            if path.is_file():
+                path.unlink()
+    manifest.unlink()
+
+
+def _write_manifest(folder: Path, ours: set[Path]) -> None:
+    base = folder.resolve()
+    rels = sorted({p.resolve().relative_to(base).as_posix() for p in ours if base in p.resolve().parents})
+    (folder / MANIFEST).write_text("".join(f"{rel}\n" for rel in rels))
 
 
 def _log_report(study: Study, folder: Path) -> None:
@@ -111,16 +137,18 @@ def _log_report(study: Study, folder: Path) -> None:
 
 def build_report(study: Study, out_root: Path, log_artifacts: bool = True) -> Report:
     start = time.perf_counter()
-    folder = out_root / study.slug
+    folder = study_folder(out_root, study.name)  # out_root/<name>, resolved inside out_root
     _clear(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    before = _files(folder)
     parts = {"sweep": _sweep_parts, "smoothing": control_report.parts, "idm": control_report.parts}.get(
         study.kind, _ablation_parts)
     tabs, figs = parts(study, folder)
-    for t in tabs:
-        t.write(folder)
+    written = {p for t in tabs for p in t.write(folder)}
     seconds = time.perf_counter() - start
     index = study_index(study, folder, tabs, figs, seconds)
+    # what this build wrote: the next build removes exactly these (a figure a builder saved before it failed too)
+    _write_manifest(folder, {*written, *(p for f in figs for p in f.paths), index, *(_files(folder) - before)})
     if log_artifacts:
         _log_report(study, folder)
     return Report(study, folder, index, tabs, figs, time.perf_counter() - start)
