@@ -22,6 +22,7 @@ nox.options.reuse_venv = "yes"
 
 APP = "app"
 STAMP = "acrmdn-install.sha256"  # in the environment: what the project was last installed from
+REQUIRE_CPP = "ACRMDN_REQUIRE_CPP"  # stm.cpp_ext.REQUIRE; `ACRMDN_REQUIRE_CPP=0 nox -s tests` lets the C++ tests skip
 
 
 def _install(session: nox.Session, extras: str = "") -> None:
@@ -60,7 +61,8 @@ def tests(session: nox.Session) -> None:
     """The test suite (benchmarks, integration and browser checks excluded). `nox -s tests -- --cov`:
     with coverage, failing under the floor in pyproject.toml (CI runs it so; the tracing costs ~30 %
     more CPU). `nox -s tests -- -m "not slow"`: the fast lane (a -m here narrows the default one).
-    All run on pytest-xdist (`-n auto --dist loadfile`) unless the arguments choose (`-n 0`: one process)."""
+    All run on pytest-xdist (`-n auto --dist loadfile`) unless the arguments choose (`-n 0`: one process). The C++
+    step kernel must build here (ACRMDN_REQUIRE_CPP=1 unless the environment sets it)."""
     _install(session, "[dev]")
     args, marks = list(session.posargs), "not bench and not integration and not browser"
     if "-m" in args[:-1]:  # pytest keeps only the last -m: combine instead of replacing ours
@@ -75,6 +77,8 @@ def tests(session: nox.Session) -> None:
     xdist = [] if any(a.startswith(("-n", "--numprocesses", "--dist")) for a in args) else \
         ["-n", "auto", "--dist", "loadfile"]
     scratch, env = _memory_tmpdir()
+    # the C++ step kernel must build (stm.cpp_ext): a broken toolchain fails its tests instead of skipping them
+    env[REQUIRE_CPP] = os.environ.get(REQUIRE_CPP, "1")
     if scratch:
         session.log(f"test folders in memory: TMPDIR={scratch}")
         args = ["-o", "tmp_path_retention_count=1", *args]  # the last run's folders only, in RAM

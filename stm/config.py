@@ -23,7 +23,7 @@ STRICT = ConfigDict(strict=True, extra="forbid")  # shared by every config datac
 Head = Literal["mdn", "deterministic"]
 Feedback = Literal["sample", "component_mean", "mixture_mean"]  # what an MDN's output feeds back
 PhiMode = Literal["grounded", "free"]
-StepKernel = Literal["python", "cpp"]  # the self-fed steps: Python ATen calls, or one C++ op per segment
+StepKernel = Literal["auto", "python", "cpp"]  # the unroll's steps and loss: C++ ops where built, or Python ATen calls
 MatmulDtype = Literal["float32", "bfloat16"]  # dtype of the training step's matrix products (stm.lstm_step)
 HEADS: tuple[str, ...] = get_args(Head)
 FEEDBACKS: tuple[str, ...] = get_args(Feedback)
@@ -97,10 +97,11 @@ class TrainConfig(_Config):
     # steps of a demo trained per sample (0: the whole demo; stm.training.windows; not in the paper)
     window: NonNegativeInt = 0
     burn_in: NonNegativeInt = 0  # with window: ground-truth steps before it that warm the state, no gradient
-    # "cpp": the self-fed steps as one C++ op per segment (stm.self_fed) and the MDN loss as one fused C++ op
-    # (stm.mdn_fused); same maths, float32 rounding apart; falls back to "python" where it does not apply or cannot
-    # be built; unhashed: a cell may resume on either
-    step_kernel: StepKernel = "python"
+    # "cpp": the unroll's steps as C++ ops (stm.self_fed) and the MDN loss as one fused C++ op (stm.mdn_fused); same
+    # maths as "python", float32 rounding apart; the Python steps where it does not apply (sampled or mixture_mean
+    # feedback, a GPU), an error where the extension cannot be built. "auto": "cpp" where the extension builds, else
+    # "python" with one warning (stm.cpp_ext.step_kernel). Unhashed: a cell may resume on either
+    step_kernel: StepKernel = "auto"
     # the matrix products of the LSTM stack and the head (forward and backward) in this dtype; state, elementwise
     # maths, kinematics, loss, master weights and Adam stay float32 (stm.lstm_step.product_dtype)
     matmul_dtype: MatmulDtype = "float32"

@@ -13,8 +13,8 @@ Same maths and weights as nn.LSTM: gates i, f, g, o (rearranged to i, f, o, g) w
 c' = f c + i g and h' = o tanh(c'); biases b_ih + b_hh. Checked against nn.LSTM and a
 plain reference unroll in tests/test_stm_speed_equivalence.py.
 
-The step functions are rank-agnostic: with a leading model axis (x (K, B, D), w (K, I, 4H))
-they step K independent models at once with batched matmuls (stm.packed_lstm_step).
+The steps carry a leading model axis (x (K, B, D), w (K, I, 4H)): K independent models step at once
+with batched matmuls, and one model is a pack of one (stm.packed_lstm_step.PackedStackStepper).
 
 Low-precision products (TrainConfig.matmul_dtype "bfloat16"): every matrix product of a step,
 forward, backward and the deferred weight gradient, takes its operands in that dtype (the
@@ -26,7 +26,6 @@ hand-written backward would get products of autocast's dtype where it adds float
 from __future__ import annotations
 
 import torch
-from torch import nn
 
 
 def product_dtype(name: str) -> torch.dtype | None:
@@ -70,9 +69,9 @@ class DeferredWeights(torch.autograd.Function):
             xh, dg = store.xh[k], store.dgates[k]
             store.xh[k], store.dgates[k] = [], []  # a second backward (retain_graph) starts afresh
             gw, gb = grads[2 * k], grads[2 * k + 1]
-            if xh:  # rows (N, .) of one model, or (K, N, .) of a pack of K (stm.packed_lstm_step)
+            if xh:  # rows (K, N, .) of a pack of K
                 xh, dg = torch.cat(xh, -2), torch.cat(dg, -2)
-                dw, db = mm(xh.transpose(-2, -1), dg, store.dtype), dg.sum(-2, keepdim=dg.dim() == 3)
+                dw, db = mm(xh.transpose(-2, -1), dg, store.dtype), dg.sum(-2, keepdim=True)
                 gw = dw if gw is None else gw + dw
                 gb = db if gb is None else gb + db
             out += [gw, gb]
@@ -87,8 +86,8 @@ def cast_once(store: DeferredGrads, wb: list[torch.Tensor]) -> None:
 
 
 def _affine(b: torch.Tensor, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """b + x @ w for one model (x (B, I), w (I, O)) or a pack (x (K, B, I), w (K, I, O), b (K, 1, O))."""
-    return torch.addmm(b, x, w) if x.dim() == 2 else torch.baddbmm(b, x, w)
+    """b + x @ w for a pack (x (K, B, I), w (K, I, O), b (K, 1, O))."""
+    return torch.baddbmm(b, x, w)
 
 
 def _stack_forward(x: torch.Tensor, hs: list[torch.Tensor], cs: list[torch.Tensor], ws: list[torch.Tensor],
@@ -164,8 +163,8 @@ def _stack_backward(gh: list[torch.Tensor | None], gc: list[torch.Tensor | None]
 
 
 class StackStep(torch.autograd.Function):
-    """One time step of the L-layer stack: x (B, D), per layer h_k, c_k (B, H) -> h_k', c_k'
-    (or, for a pack of K models, (K, B, .) each, with weights (K, I, 4H) and biases (K, 1, 4H)).
+    """One time step of the L-layer stacks of K models: x (K, B, D), per layer h_k, c_k (K, B, H) -> h_k', c_k',
+    with weights (K, I, 4H) and biases (K, 1, 4H).
 
     Per-layer tensors in and out (no stack/select per step); w_t has the gate columns in
     the order i, f, o, g, those of g doubled, so that one sigmoid gives all four gates."""
@@ -201,34 +200,3 @@ def gate_order(H: int, device: torch.device | None = None) -> tuple[torch.Tensor
                        torch.arange(2 * H, 3 * H, device=device)])
     scale = torch.cat([torch.ones(3 * H, device=device), torch.full((H,), 2.0, device=device)])
     return order, scale
-
-
-class StackStepper:
-    """Steps an nn.LSTM's stack one time step at a time (create one per unroll, inside the
-    autograd graph: it rearranges the weights once)."""
-
-    def __init__(self, lstm: nn.LSTM, in_std: torch.Tensor | None = None, dtype: torch.dtype | None = None):
-        """With in_std the steps take centred inputs x - mean and compute what the LSTM gives
-        for (x - mean) / in_std: the division is folded into the first layer's input weights,
-        W ((x - m) / s) = (W / s)(x - m), one op fewer per step. (The mean is not folded:
-        (W / s) x - (W / s) m would cancel catastrophically where s is tiny.) With dtype the products run in
-        it (product_dtype)."""
-        H, L = lstm.hidden_size, lstm.num_layers
-        self.layers = L
-        self.store = DeferredGrads(L, dtype)
-        order, scale = gate_order(H, lstm.weight_hh_l0.device)
-        wb = []
-        for k in range(L):  # W^T of [x, h] -> gates, and the summed bias
-            w_ih, b = getattr(lstm, f"weight_ih_l{k}"), getattr(lstm, f"bias_ih_l{k}") + getattr(lstm, f"bias_hh_l{k}")
-            if k == 0 and in_std is not None:
-                w_ih = w_ih / in_std
-            w = torch.cat([w_ih, getattr(lstm, f"weight_hh_l{k}")], dim=1)
-            wb += [(w[order] * scale[:, None]).t(), b[order] * scale]
-        self.wb = DeferredWeights.apply(self.store, *wb)
-        cast_once(self.store, wb)
-
-    def __call__(self, x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]
-                 ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """x (B, D), per-layer h, c (B, H) -> the next per-layer h, c (top layer last)."""
-        out = StackStep.apply(x, self.store, *h, *c, *self.wb)
-        return list(out[: self.layers]), list(out[self.layers:])

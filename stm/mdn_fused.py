@@ -8,8 +8,8 @@ component for the backward (responsibility-weighted coefficients), so it costs a
 Same maths as stm.mdn (sigma = sigma_min + softplus, log-softmax weights, max-shifted log-sum-exp), float32
 rounding apart: tests/test_stm_mdn_fused.py holds it to stm.mdn. `mixture_nll` takes the fused op where it applies
 (the extension is built, float32 or float64 CPU tensors, a target of the head output's leading shape) and stm.mdn
-elsewhere; the training loss uses it with TrainConfig.step_kernel = "cpp" (stm.model.STM.loss,
-stm.packed.PackView.losses); the default "python" keeps stm.mdn.
+elsewhere; the training loss uses it where the C++ kernel runs (TrainConfig.step_kernel "auto", the default, where
+the extension builds, or "cpp"; stm.model.step_losses); "python" keeps stm.mdn.
 """
 
 from __future__ import annotations

@@ -24,6 +24,7 @@ from torch import nn
 from envs.tasks.base import StateLayout
 from stm import mdn, mdn_fused
 from stm.config import ModelConfig
+from stm.cpp_ext import step_kernel
 
 STD_FLOOR = 1e-6  # a constant state dimension normalises to 0 instead of dividing by 0
 
@@ -74,18 +75,9 @@ class STM(nn.Module):
 
     def loss(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, kernel: str = "python"
              ) -> torch.Tensor:
-        """Mean per-step loss over the valid steps: NLL (MDN) or MSE averaged over dims (deterministic).
-
-        raw (B, T, out), target (B, T, D) normalised next states, mask (B, T) bool. kernel (TrainConfig.step_kernel):
-        "cpp" computes the NLL with the fused C++ op where it applies (stm.mdn_fused), "python" with stm.mdn.
-        """
-        if self.is_mdn:
-            if kernel == "cpp":
-                per_step = mdn_fused.mixture_nll(raw, target, self.config.mixtures, self.config.sigma_min)
-            else:
-                per_step = mdn.mixture_nll(*self.mixture(raw), target)
-        else:
-            per_step = (raw - target).square().mean(-1)
+        """Mean per-step loss over the valid steps (step_losses): raw (B, T, out), target (B, T, D) normalised
+        next states, mask (B, T) bool; kernel as step_losses'."""
+        per_step = step_losses(raw, target, self.config, kernel)
         m = mask.to(per_step.dtype)
         return (per_step * m).sum() / m.sum().clamp_min(1.0)
 
@@ -135,6 +127,18 @@ class STM(nn.Module):
             return mdn.mixture_mean(logit_alpha, mu)  # sum alpha_i = 1: the folded mean carries over
 
         return predict
+
+
+def step_losses(raw: torch.Tensor, target: torch.Tensor, config: ModelConfig, kernel: str = "python") -> torch.Tensor:
+    """The loss of each step (...) of head outputs raw (..., out) against normalised next states target (..., D):
+    the NLL of an MDN head, the MSE averaged over dims of a deterministic one. kernel (TrainConfig.step_kernel):
+    where it runs "cpp" (stm.cpp_ext.step_kernel) the NLL is the fused C++ op where it applies (stm.mdn_fused),
+    else stm.mdn's (the reference). One model's loss (STM.loss) and a pack's (stm.packed.PackView.losses)."""
+    if config.head != "mdn":
+        return (raw - target).square().mean(-1)
+    if step_kernel(kernel, raw.device.type) == "cpp":
+        return mdn_fused.mixture_nll(raw, target, config.mixtures, config.sigma_min)
+    return mdn.mixture_nll(*mdn.split_params(raw, config.mixtures, target.shape[-1], config.sigma_min), target)
 
 
 def initial_state(task, kin, q0: torch.Tensor, psi0: torch.Tensor, grip0: torch.Tensor | None = None) -> torch.Tensor:

@@ -16,8 +16,8 @@ import copy
 import torch
 from torch import nn
 
-from stm import mdn, mdn_fused
-from stm.model import STM
+from stm import mdn
+from stm.model import STM, step_losses
 
 
 class PackedSTM(nn.Module):
@@ -127,14 +127,8 @@ class PackView:
 
     def losses(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, kernel: str = "python"
                ) -> torch.Tensor:
-        """(K,) mean per-step loss of each model over its valid steps (STM.loss per model, `kernel` as there)."""
-        if self.is_mdn:
-            if kernel == "cpp":
-                per_step = mdn_fused.mixture_nll(raw, target, self.config.mixtures, self.config.sigma_min)
-            else:
-                per_step = mdn.mixture_nll(*self.mixture(raw), target)
-        else:
-            per_step = (raw - target).square().mean(-1)
+        """(K,) mean per-step loss of each model over its valid steps (STM.loss per model; stm.model.step_losses)."""
+        per_step = step_losses(raw, target, self.config, kernel)
         m = mask.to(per_step.dtype)
         return (per_step * m).sum((1, 2)) / m.sum((1, 2)).clamp_min(1.0)
 

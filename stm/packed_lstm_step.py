@@ -1,4 +1,4 @@
-"""The LSTM stack step of stm.lstm_step for a pack of K models with independent weights.
+"""The LSTM stack step of stm.lstm_step for a pack of K models with independent weights (one model: a pack of one).
 
 Per layer the K models' weights are stacked on a leading model axis, (K, I, 4H), and a
 step is one batched matmul per layer (torch.baddbmm) for all K models: the same
@@ -18,10 +18,12 @@ from stm.lstm_step import DeferredGrads, DeferredWeights, StackStep, cast_once, 
 
 class PackedStackStepper:
     """Steps the LSTM stacks of K models one time step at a time (one per unroll, inside the
-    autograd graph). `lstm` is a list per layer of (w_ih (K, 4H, I), w_hh (K, 4H, H),
-    b_ih (K, 4H), b_hh (K, 4H)), nn.LSTM's layout with a leading model axis. With in_std
-    ((D,) or (K, D)) the steps take centred inputs and fold the division into the first
-    layer's input weights, as stm.lstm_step.StackStepper does. With dtype the products run in it."""
+    autograd graph: it rearranges the weights once). `lstm` is a list per layer of (w_ih (K, 4H, I),
+    w_hh (K, 4H, H), b_ih (K, 4H), b_hh (K, 4H)), nn.LSTM's layout with a leading model axis. With in_std
+    ((D,) or (K, D)) the steps take centred inputs x - mean and compute what the LSTM gives for
+    (x - mean) / in_std: the division is folded into the first layer's input weights, W ((x - m) / s) =
+    (W / s)(x - m), one op fewer per step. (The mean is not folded: (W / s) x - (W / s) m would cancel
+    catastrophically where s is tiny.) With dtype the products run in it (stm.lstm_step.product_dtype)."""
 
     def __init__(self, lstm: list[tuple[torch.Tensor, ...]], in_std: torch.Tensor | None = None,
                  dtype: torch.dtype | None = None):

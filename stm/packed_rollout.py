@@ -16,7 +16,7 @@ from stm.fk import default_tip_kinematics
 from stm.model import STM, feedback_state, initial_state
 from stm.packed import PackedSTM, PackView
 from stm.packed_lstm_step import PackedStackStepper
-from stm.rollout import Rollouts, padded_psi, restart_mask
+from stm.rollout import Rollouts, padded_psi, restart_configs, restart_from, restart_mask
 
 
 def _step(wb: list[torch.Tensor], x: torch.Tensor, h: list[torch.Tensor], c: list[torch.Tensor]):
@@ -84,9 +84,12 @@ def generate_packed(models: PackedSTM | list[STM], task: Task, episodes: list[Ep
     restarts = restart_mask(episodes, H)
     starting = restarts.any(0).tolist()  # per step (no device sync per step)
     restarts = restarts.to(device)
+    configs = restart_configs(episodes, H)
+    configs = None if configs is None else configs.to(device)
     for t in range(H):
         if t > 0 and starting[t]:
             rows = restarts[:, t]
+            q = restart_from(q, configs, rows, t)
             s = s.clone()
             s[:, rows] = initial_state(task, kin, q[:, rows], psi[rows, t].expand(K, -1, -1))
             h, c = [x.clone() for x in h], [x.clone() for x in c]

@@ -7,7 +7,10 @@ the same state assembly as training (`stm.model.feedback_state`). Each episode's
 psi is read per step from `episode.psi`, so a goal switch is a change of rows.
 A task that chains skills (stacking: three pick-and-places) lists the steps at which
 a new skill starts in `episode.info["restart_steps"]`: there the LSTM state is reset
-and the input is built as an episode start (dq = 0, gripper open) from the current q.
+and the input is built as an episode start (dq = 0, gripper open) from the current q, or,
+where the episode lists one configuration per restart step in `info["restart_q"]`, from
+that configuration (the task moves the arm there by script between the two rows; the row
+of the restart step keeps where the last skill ended).
 
 What an MDN feeds back (`feedback`; a deterministic head ignores it):
   component_mean     the mean of the most likely component, each step (the default)
@@ -83,6 +86,30 @@ def restart_mask(episodes: list[Episode], horizon: int) -> torch.Tensor:
     return mask
 
 
+def restart_configs(episodes: list[Episode], horizon: int) -> torch.Tensor | None:
+    """(B, H+1, 7) the configuration each episode restarts from at its restart steps (info["restart_q"], one per
+    step of info["restart_steps"], in order), NaN elsewhere; None when no episode lists any."""
+    if not any(ep.info.get("restart_q") for ep in episodes):
+        return None
+    out = torch.full((len(episodes), horizon + 1, 7), float("nan"))
+    for i, ep in enumerate(episodes):
+        configs = ep.info.get("restart_q") or []
+        steps = list(ep.info.get("restart_steps", ()))
+        if configs and len(configs) != len(steps):
+            raise ValueError(f"{len(configs)} restart configurations for {len(steps)} restart steps")
+        for t, q in zip(steps, configs, strict=False):
+            out[i, int(t)] = torch.as_tensor(q, dtype=torch.float32)
+    return out
+
+
+def restart_from(q: torch.Tensor, configs: torch.Tensor | None, rows: torch.Tensor, t: int) -> torch.Tensor:
+    """q (..., B, 7) with the rows that restart at step t from a listed configuration (restart_configs) set to it."""
+    if configs is None:
+        return q
+    given = rows & ~torch.isnan(configs[:, t, 0])
+    return torch.where(given[:, None], configs[:, t], q)
+
+
 def _feedback_point(model: STM, raw: torch.Tensor, feedback: str, chosen: torch.Tensor, temperature: float,
                     gen: torch.Generator, prev: torch.Tensor | None = None,
                     fresh: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -140,12 +167,15 @@ def generate(model: STM, task: Task, episodes: list[Episode], *, feedback: str =
     restarts[:, 0] = True  # every episode starts a segment
     starting = restarts.any(0).tolist()  # per step: does an episode start a segment (no device sync per step)
     restarts = restarts.to(device)
+    configs = restart_configs(episodes, H)
+    configs = None if configs is None else configs.to(device)
     commit = feedback in ("segment_component", "segment_track") and model.is_mdn
     chosen = torch.zeros(B, dtype=torch.long, device=device)
     z = None  # the previous step's fed-back point (normalised)
     for t in range(H):
         if t > 0 and starting[t]:
             rows = restarts[:, t]
+            q = restart_from(q, configs, rows, t)
             s = s.clone()
             s[rows] = initial_state(task, kin, q[rows], psi[rows, t])
             hc = tuple(x.clone() for x in hc)

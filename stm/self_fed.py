@@ -10,10 +10,11 @@ per-op cost). Weight gradients are one product per layer and chunk (or segment),
 (_GradSums) and handed to autograd once; deferring all rows to one product after the unroll, as the Python steps do,
 would copy every row once more.
 
-TrainConfig.step_kernel = "cpp" selects it where it applies: an MDN head feeding back component_mean or a
-deterministic head; phi fed back free, or grounded where the task's phi is the tip plus a function of psi
-(checked on the batch); the inputs not requested back. Elsewhere, and where the extension cannot be built
-(stm.cpp_ext warns once), the Python steps run. tests/test_stm_self_fed.py holds it to the Python path.
+TrainConfig.step_kernel "auto" (the default, where the extension builds) or "cpp" selects it where it applies: on
+the CPU, an MDN head feeding back component_mean or a deterministic head; phi fed back free, or grounded where the
+task's phi is the tip plus a function of psi (checked on the batch); the inputs not requested back. Elsewhere, and
+with "auto" where the extension cannot be built (stm.cpp_ext warns once), the Python steps run.
+tests/test_stm_self_fed.py holds it to the Python path.
 
 With bf16 products (train.matmul_dtype "bfloat16", float32 weights) the segment's and the layer sequence's
 products, forward, backward and weight gradients, take bf16 operands, the weights cast once per unroll (the
@@ -31,7 +32,7 @@ from __future__ import annotations
 import torch
 
 from stm.config import TrainConfig
-from stm.cpp_ext import self_fed_extension
+from stm.cpp_ext import self_fed_extension, step_kernel
 from stm.fk import TipKinematics
 from stm.packed import PackView
 
@@ -40,7 +41,7 @@ JOINTS = 7
 
 def supported(view: PackView, cfg: TrainConfig, return_inputs: bool = False) -> bool:
     """Whether the C++ segment may run this unroll's self-fed steps (before the task and kinematics checks)."""
-    return (cfg.step_kernel == "cpp" and cfg.v > 0 and not return_inputs
+    return (step_kernel(cfg.step_kernel, view.state_mean.device.type) == "cpp" and cfg.v > 0 and not return_inputs
             and cfg.matmul_dtype in ("float32", "bfloat16") and (not view.is_mdn or cfg.feedback == "component_mean"))
 
 
@@ -210,11 +211,11 @@ def cpp_steps(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.T
     grounded = cfg.phi_mode == "grounded"
     if grounded and not isinstance(kin, TipKinematics):
         return None
-    if stepper.wb[0].dtype not in (torch.float32, torch.float64):  # the C++ cell loops: float and double
+    if stepper.wb[0].dtype not in (torch.float32, torch.float64):  # the C++ step loops: float and double
         return None
     dt = stepper.store.dtype
     if dt is not None and (dt != torch.bfloat16 or stepper.wb[0].dtype != torch.float32):
-        return None  # bf16 products give float32 (lstm_cell.h, low_bmm)
+        return None  # bf16 products give float32 (lstm_step.h, low_bmm)
     dtype = view.state_mean.dtype
     offset = _phi_offset(task, psi, dtype) if grounded else psi.new_zeros(*psi.shape[:-1], 3)
     if offset is None:

@@ -1,5 +1,6 @@
 """The step kernel is a route, not a setting: it leaves a cell's config hash alone (a cell may resume on the
-other route), and each run records which commits and kernels trained it, from which iteration on."""
+other route, and the default's change from python to auto changed no hash), and each run records which commits and
+kernels trained it, from which iteration on: the kernel that ran, not the one asked for."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from experiments.cells import build_cells
 from experiments.runtime.tracking import git_commit
 from experiments.study_config import load_profile
 from stm.config import TrainConfig
+from stm.cpp_ext import step_kernel
 
 
 def test_trained_on_appends_a_stretch_only_when_the_route_changes():
@@ -25,11 +27,14 @@ def test_trained_on_appends_a_stretch_only_when_the_route_changes():
 
 def test_the_step_kernel_is_not_hashed_but_other_settings_are():
     base = {c.key: c.config_hash for c in build_cells(load_profile("smoke"))}
-    cpp = build_cells(load_profile("smoke", ["train.step_kernel=cpp"]))
-    assert {c.key: c.config_hash for c in cpp} == base
-    assert all(c.train.step_kernel == "cpp" for c in cpp)
+    assert all(c.train.step_kernel == "auto" for c in build_cells(load_profile("smoke")))  # the default
+    for kernel in ("cpp", "python"):
+        cells = build_cells(load_profile("smoke", [f"train.step_kernel={kernel}"]))
+        assert {c.key: c.config_hash for c in cells} == base
+        assert all(c.train.step_kernel == kernel for c in cells)
+    assert TrainConfig().hashed_dict() == TrainConfig(step_kernel="python").hashed_dict()
     assert "step_kernel" not in TrainConfig(step_kernel="cpp").hashed_dict()
-    for override in ("train.step_kernel=cpp", "per_task.reacher.train.step_kernel=cpp"):
+    for override in ("train.step_kernel=cpp", "per_task.reacher.train.step_kernel=cpp", "train.step_kernel=python"):
         cfg = load_profile("smoke", [override])
         assert cfg.study_hash() == load_profile("smoke").study_hash()
         assert cfg.resolved_study_name() == load_profile("smoke").resolved_study_name()  # a re-run continues it
@@ -43,6 +48,6 @@ def test_each_run_records_its_kernel_and_route(smoke_store):
     cells = client.search_runs([exp.experiment_id], "tags.role = 'cell'")
     assert cells
     for run in cells:
-        assert run.data.params["train.step_kernel"] == "python"
+        assert run.data.params["train.step_kernel"] == "auto"  # asked for
         stretches = run.data.tags[TRAINED_ON].split(";")
-        assert stretches[0] == f"{git_commit()}:python@0"
+        assert stretches[0] == f"{git_commit()}:{step_kernel('auto')}@0"  # ran: cpp where the extension builds

@@ -12,7 +12,7 @@ from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed_rollout import generate_packed
 from stm.rollout import generate
-from stm.speed.bench import SIZES, BenchTask, _packed_step, bench_demos
+from stm.speed.bench import SIZES, BenchTask, _iterations, bench_demos
 from stm.training.autoconditioning import batch_loss
 from stm.training.batches import DemoTensors
 
@@ -60,9 +60,10 @@ def test_thousand_reacher_rollouts(benchmark, reacher_setup):
 @pytest.mark.parametrize("u,v", [(1, 0), (2, 2), (5, 5)], ids=["tf", "ac-u2v2", "ac-u5v5"])
 def test_packed_training_iteration(benchmark, reacher_setup, u, v):
     """One iteration of a pack of 3 models (stm.packed): compare with 3x the rows above."""
-    task, model, batch = reacher_setup
-    step = _packed_step(task, (model.state_mean, model.state_std), model.config, batch, default_tip_kinematics())
-    benchmark.pedantic(step(TrainConfig(u=u, v=v)), rounds=5, warmup_rounds=1)
+    task, model, _ = reacher_setup
+    spec = SIZES["reacher"]
+    step = _iterations(task, bench_demos(spec["batch"], spec["steps"], False), model.config)
+    benchmark.pedantic(step(TrainConfig(u=u, v=v, batch_size=spec["batch"])), rounds=5, warmup_rounds=1)
 
 
 @pytest.mark.benchmark(group="stm-rollouts")

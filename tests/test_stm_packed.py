@@ -189,16 +189,27 @@ def test_bench_reports_packed_speedups(monkeypatch, capsys):
     assert 0 < share < 1 and entry["packed_speedup_ceiling"] == pytest.approx(1 / (share + (1 - share) / 3), rel=0.01)
     assert entry["window_speedup_packed_ac_u5v5"] == pytest.approx(ms["packed_ac_u5v5"] / ms["packed_ac_u5v5_window"],
                                                                    rel=0.02)
-    # the matrix-product floor, per model-iteration, side by side with the iterations of the same run
+    # the floor: the FLOPs counted from the shapes at the peak GEMM rate measured in the same run
+    peak = out["peak_gflops"]
+    assert peak["fp32"] > 0 and peak["bf16"] > 0 and peak["size"] == 2048
     for k in ("tf", "ac_u5v5", "packed_tf", "packed_ac_u5v5", "ac_u5v5_cpp", "packed_ac_u5v5_cpp"):
         per_model = ms[k] / (3 if k.startswith("packed") else 1)
         assert entry["ms_per_model_iter"][k] == pytest.approx(per_model, rel=0.02)
-        floor = entry["floor_ms_per_model_iter"][k]
-        assert entry["floor_ratio"][k] == pytest.approx(per_model / floor["fp32"], rel=0.05)
-        assert entry["matmuls_per_iter"][k] > 0 and floor["bf16"] > 0
+        schedule = "tf" if "tf" in k else "ac_u5v5"
+        gflop = entry["gflop_per_model_iter"][schedule]["total"]
+        floor = {dt: entry["floor_ms_per_model_iter"][dt][schedule] for dt in ("fp32", "bf16")}
+        assert floor["fp32"] == pytest.approx(gflop / peak["fp32"] * 1e3, rel=0.01)
+        assert floor["bf16"] == pytest.approx(gflop / peak["bf16"] * 1e3, rel=0.01)
+        assert entry["floor_ratio"][k] == pytest.approx(per_model / (gflop / peak["fp32"] * 1e3), rel=0.05)
+        assert entry["bf16_floor_ratio"][k] == pytest.approx(entry["bf16_ms_per_model_iter"][k]
+                                                             / (gflop / peak["bf16"] * 1e3), rel=0.05)
+        assert entry["matmuls_per_iter"][k] > 0 and entry["products_replayed_gflops"][k] > 0
+        assert entry["products_ratio"][k] == pytest.approx(
+            per_model / entry["products_replayed_ms_per_model_iter"][k], rel=0.05)
         assert entry["bf16_over_fp32"][k] == pytest.approx(ms[f"bf16_{k}"] / ms[k], rel=0.02)
-        assert entry["bf16_floor_ratio"][k] == pytest.approx(entry["bf16_ms_per_model_iter"][k] / floor["fp32"],
-                                                             rel=0.05)
+    parts = entry["gflop_per_model_iter"]["ac_u5v5"]
+    assert parts["feedback"] > 0 == entry["gflop_per_model_iter"]["tf"]["feedback"]
+    assert parts["total"] == pytest.approx(parts["lstm"] + parts["head"] + parts["feedback"], rel=1e-3)
     assert entry["aten_calls_per_iter"]["ac_u5v5"] > entry["aten_calls_per_iter"]["tf"] > 0
     fk = out["fk"]
     assert set(fk["us_per_call"]) == set(fk["aten_calls"]) == {"train", "train_packed", "rollouts"}

@@ -70,6 +70,28 @@ def test_a_restart_step_continues_as_a_fresh_episode_from_the_current_q(overfit)
         generate(model, task, [Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon, info={"restart_steps": [40]})])
 
 
+def test_a_restart_step_with_a_listed_configuration_continues_from_it(overfit):
+    """info["restart_q"]: at its restart step the model restarts from that configuration (a task moves the arm
+    there by script between the two rows): the row of the restart step keeps where the last segment ended, the rest
+    is a fresh episode from the listed configuration; the packed rollout of several models agrees."""
+    from stm.packed_rollout import generate_packed
+
+    task, demos, model = overfit
+    ep = demo_episodes(demos, 1)[0]
+    k, elsewhere = 6, np.asarray(ep.q0) + 0.1
+    listed = Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon, info={"restart_steps": [k], "restart_q": [elsewhere]})
+    chained = Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon, info={"restart_steps": [k]})
+    ro, plain = generate(model, task, [listed, chained]).q
+    np.testing.assert_allclose(ro[: k + 1], plain[: k + 1], atol=1e-6)  # the last segment's end is kept
+    fresh = generate(model, task, [Episode(q0=elsewhere, psi=ep.psi[k:], horizon=ep.horizon - k)]).q[0]
+    np.testing.assert_allclose(ro[k + 1:], fresh[1:], atol=1e-5)  # then a new episode from the listed configuration
+    (packed,) = generate_packed([model], task, [listed])
+    np.testing.assert_allclose(packed.q[0], ro, atol=1e-5)
+    with pytest.raises(ValueError, match="2 restart configurations for 1 restart steps"):
+        generate(model, task, [Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon,
+                                       info={"restart_steps": [k], "restart_q": [elsewhere, elsewhere]})])
+
+
 def test_sampling_is_seeded_and_evaluate_runs_physics(overfit):
     task, demos, model = overfit
     eps = task.episodes(2, seed=0)

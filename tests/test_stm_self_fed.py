@@ -6,8 +6,10 @@ Tolerances: the self-fed steps run the same ATen calls in the same order as the 
 chunks run as a layer sequence where a single model's Python path calls oneDNN's fused layer, and the backward
 sums a few gradient contributions in another order (the feedback head's weight gradient: one product per segment
 instead of one per step), so results differ by float32 rounding: measured, losses within 1e-7 relative and
-gradients within 4e-7 of each parameter's largest; asserted 1e-6 for both. The fused NLL rounds differently
-from stm.mdn's dozen ATen calls (tests/test_stm_mdn_fused.py: per element within 6e-7, gradients within 2e-6 of
+gradients within 4e-7 of each parameter's largest (on a Xeon; 1.01e-6 on an AMD EPYC, in the teacher-forced
+pack with the fused NLL); asserted 1e-6 for losses and 2e-6, the fused NLL's own rounding, for gradients. The
+fused NLL rounds differently from
+stm.mdn's dozen ATen calls (tests/test_stm_mdn_fused.py: per element within 6e-7, gradients within 2e-6 of
 the largest): the same loss and gradient tolerances hold with it, teacher-forced (no self-fed steps: the NLL is the
 only difference; the deterministic head has none, asserted bitwise equal) and auto-conditioned. After N Adam steps
 at lr the weights differ by up to ~N * lr * (a gradient's rounding over its own size): Adam divides each element's
@@ -21,7 +23,8 @@ float32), so the two differ by bf16's rounding, as much as either differs from f
 7e-5 relative and each parameter's gradient within 4.3e-3 of its norm (per model); asserted 5e-4 (as
 tests/test_stm_bf16.py) and 2e-2. That the bf16 products ran: the gradients differ from the C++ float32 path's by
 more than 2e-4 of their norm (measured at least 1.7e-3; the float32 paths agree within 1e-6).
-Skipped where the extension cannot be built (stm.cpp_ext warns and the Python path runs)."""
+Skipped where the extension cannot be built (stm.cpp_ext warns and the Python path runs), unless ACRMDN_REQUIRE_CPP
+is set (the nox tests session, CI): there they fail."""
 
 import dataclasses
 
@@ -29,9 +32,8 @@ import pytest
 import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
-from stm import mdn_fused, self_fed
+from stm import cpp_ext, mdn_fused, self_fed
 from stm.config import ModelConfig, TrainConfig
-from stm.cpp_ext import self_fed_extension
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed import PackedSTM
@@ -42,10 +44,11 @@ from stm.training.loop import train, train_packed
 from stm.variants import VARIANTS
 
 KIN = default_tip_kinematics(torch.float32)
-LOSS_RTOL, GRAD_TOL, WEIGHT_TOL = 1e-6, 1e-6, 3e-6
+LOSS_RTOL, GRAD_TOL, WEIGHT_TOL = 1e-6, 2e-6, 3e-6
 BF16_LOSS_RTOL, BF16_GRAD_RTOL, BF16_SHOWS = 5e-4, 2e-2, 2e-4
 
-needs_extension = pytest.mark.skipif(self_fed_extension() is None, reason="the C++ extension cannot be built here")
+needs_extension = pytest.mark.skipif(not cpp_ext.required() and cpp_ext.self_fed_extension() is None,
+                                     reason="the C++ extension cannot be built here")
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +108,7 @@ def test_cpp_segment_matches_python_steps(toy, case, monkeypatch):
     pack = _pack(task, data, ModelConfig(**{"hidden_size": 16, "num_layers": 3, "mixtures": 3, **overrides}),
                  cfg.phi_mode, k)
     batch = data.batch(torch.arange(len(data.lengths)))
-    ref_loss, ref_grads = _loss_and_grads(pack, batch, task, cfg)
+    ref_loss, ref_grads = _loss_and_grads(pack, batch, task, dataclasses.replace(cfg, step_kernel="python"))
     loss, grads = _loss_and_grads(pack, batch, task, dataclasses.replace(cfg, step_kernel="cpp"))
     if cfg.v == 0:
         assert made == []  # teacher forcing: no self-fed steps to run
@@ -123,7 +126,10 @@ def test_cpp_segment_runs_where_it_applies(toy):
     task, _ = toy
     view = _pack(task, toy[1], ModelConfig(hidden_size=8, mixtures=2), "grounded", 1).view()
     assert self_fed.supported(view, TrainConfig(step_kernel="cpp"))
-    assert not self_fed.supported(view, TrainConfig())  # python: the default
+    assert self_fed.supported(view, TrainConfig())  # auto, the default: where the extension builds
+    assert not self_fed.supported(view, TrainConfig(step_kernel="python"))
+    assert not self_fed.supported(_pack(task, toy[1], ModelConfig(hidden_size=8, mixtures=2), "grounded", 1)
+                                  .to("meta").view(), TrainConfig())  # off the CPU: the Python steps
     assert not self_fed.supported(view, TrainConfig(step_kernel="cpp", v=0))  # teacher forcing: no self-fed steps
     assert not self_fed.supported(view, TrainConfig(step_kernel="cpp", feedback="mixture_mean"))
     assert not self_fed.supported(view, TrainConfig(step_kernel="cpp"), return_inputs=True)
@@ -154,7 +160,7 @@ def test_cpp_bf16_products_match_the_python_bf16_path(toy, case, monkeypatch):
                  cfg.phi_mode, k)
     batch = data.batch(torch.arange(len(data.lengths)))
     bf16 = dataclasses.replace(cfg, matmul_dtype="bfloat16")
-    ref_loss, ref_grads = _loss_and_grads(pack, batch, task, bf16)
+    ref_loss, ref_grads = _loss_and_grads(pack, batch, task, dataclasses.replace(bf16, step_kernel="python"))
     loss, grads = _loss_and_grads(pack, batch, task, dataclasses.replace(bf16, step_kernel="cpp"))
     assert made[0] is None and made[1] is not None  # the C++ steps ran
     assert [w.dtype for w in made[1].low_fb] == [torch.bfloat16] * 4  # the head's rows and 3 layers, cast once
@@ -220,20 +226,42 @@ def test_a_phi_not_linear_in_the_tip_falls_back(toy):
     assert self_fed._phi_offset(Squared(), psi, torch.float32) is None
 
 
-def test_without_the_extension_the_python_steps_run(toy, monkeypatch):
+def test_without_the_extension_auto_runs_the_python_steps_and_cpp_refuses(toy, monkeypatch):
     task, data = toy
-    monkeypatch.setattr(self_fed, "self_fed_extension", lambda: None)
-    monkeypatch.setattr(mdn_fused, "self_fed_extension", lambda: None)
+    for module in (cpp_ext, self_fed, mdn_fused):
+        monkeypatch.setattr(module, "self_fed_extension", lambda: None)
     pack = _pack(task, data, ModelConfig(hidden_size=8, mixtures=2), "grounded", 1)
     batch = data.batch(torch.arange(3))
-    for cfg in (TrainConfig(u=2, v=2), TrainConfig(v=0)):
+    for cfg in (TrainConfig(u=2, v=2, step_kernel="python"), TrainConfig(v=0, step_kernel="python")):
         ref = _loss_and_grads(pack, batch, task, cfg)
-        got = _loss_and_grads(pack, batch, task, dataclasses.replace(cfg, step_kernel="cpp"))
+        got = _loss_and_grads(pack, batch, task, dataclasses.replace(cfg, step_kernel="auto"))
         assert torch.equal(got[0], ref[0]) and all(torch.equal(a, b) for a, b in zip(got[1], ref[1], strict=True))
+        with pytest.raises(RuntimeError, match="step_kernel=cpp, but the C\\+\\+ extension cannot be built"):
+            _loss_and_grads(pack, batch, task, dataclasses.replace(cfg, step_kernel="cpp"))
+    assert cpp_ext.step_kernel("auto") == "python"
+
+
+def test_the_kernel_that_runs():
+    """auto is cpp where the extension builds; python as asked; off the CPU the Python steps run."""
+    built = cpp_ext.self_fed_extension() is not None
+    assert cpp_ext.step_kernel("auto") == ("cpp" if built else "python")
+    assert cpp_ext.step_kernel("python") == "python"
+    assert cpp_ext.step_kernel("auto", "cuda") == cpp_ext.step_kernel("cpp", "cuda") == "python"
+
+
+def test_the_extension_builds_where_it_is_required(monkeypatch):
+    """ACRMDN_REQUIRE_CPP (set by the nox tests session, so CI) turns a failed build into a failure instead of the
+    C++ tests' skips; where it is set, the extension must load here."""
+    if cpp_ext.required():
+        assert cpp_ext.self_fed_extension() is not None
+    monkeypatch.setenv(cpp_ext.REQUIRE, "0")
+    assert not cpp_ext.required()
+    monkeypatch.setenv(cpp_ext.REQUIRE, "1")
+    assert cpp_ext.required()
 
 
 TINY = ModelConfig(hidden_size=12, num_layers=2, mixtures=2)
-BASE = TrainConfig(iters=8, batch_size=4, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0)
+BASE = TrainConfig(iters=8, batch_size=4, lr=3e-3, u=2, v=2, log_every=0, checkpoint_every=0, step_kernel="python")
 
 
 @needs_extension
@@ -244,7 +272,7 @@ def test_training_with_the_cpp_kernel_matches(toy, variant):
     task, _ = toy
     demos = task.demos(0)
     model_cfg, cfg = VARIANTS[variant].configs(TINY, BASE)
-    ref = train(model_cfg, cfg, task, demos)
+    ref = train(model_cfg, cfg, task, demos)  # BASE: the Python steps
     got = train(model_cfg, dataclasses.replace(cfg, step_kernel="cpp"), task, demos)
     exact = cfg.v == 0 and model_cfg.head != "mdn"
     torch.testing.assert_close(torch.tensor(got.history["train/loss"]), torch.tensor(ref.history["train/loss"]),
@@ -273,6 +301,10 @@ def test_a_failed_build_warns_once_and_the_python_steps_run(toy, monkeypatch):
     monkeypatch.setattr(cpp_extension, "load", fail)
     cpp_ext.self_fed_extension.cache_clear()
     try:
+        monkeypatch.setenv(cpp_ext.REQUIRE, "1")  # required (CI): the failure raises
+        with pytest.raises(RuntimeError, match="ACRMDN_REQUIRE_CPP is set.*no compiler here"):
+            cpp_ext.self_fed_extension()
+        monkeypatch.delenv(cpp_ext.REQUIRE)
         with pytest.warns(RuntimeWarning, match="no compiler here"):
             assert cpp_ext.self_fed_extension() is None
         with warnings.catch_warnings():
@@ -281,7 +313,7 @@ def test_a_failed_build_warns_once_and_the_python_steps_run(toy, monkeypatch):
         task, data = toy
         pack = _pack(task, data, ModelConfig(hidden_size=8, mixtures=2), "grounded", 1)
         monkeypatch.setattr(self_fed, "self_fed_extension", cpp_ext.self_fed_extension)
-        assert self_fed.cpp_steps(pack.view(), TrainConfig(step_kernel="cpp"), task, KIN, None,
-                                  data.batch(torch.arange(2)).psi.unsqueeze(0)) is None
+        assert self_fed.cpp_steps(pack.view(), TrainConfig(), task, KIN, None,
+                                  data.batch(torch.arange(2)).psi.unsqueeze(0)) is None  # auto: the Python steps
     finally:
         cpp_ext.self_fed_extension.cache_clear()

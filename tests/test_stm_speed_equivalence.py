@@ -1,7 +1,10 @@
 """The optimised auto-conditioned unroll (stm.training.autoconditioning.unroll: fused/stepped ground-truth chunks,
 a feedback head cut to the rows it reads with the denormalisation folded in, the hand-written
 LSTM stack step of stm.lstm_step with the input normalisation folded in, deferred weight gradients)
-computes the same loss and gradients as a straightforward step-by-step reference."""
+computes the same loss and gradients as a straightforward step-by-step reference: on the Python steps, and on the
+default route (the C++ steps where the extension builds, stm.self_fed)."""
+
+import dataclasses
 
 import pytest
 import torch
@@ -9,8 +12,8 @@ from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
-from stm.lstm_step import StackStepper
 from stm.model import STM, feedback_state, normalization_stats
+from stm.packed_lstm_step import PackedStackStepper
 from stm.training.autoconditioning import batch_loss, schedule
 from stm.training.batches import DemoTensors
 
@@ -65,10 +68,12 @@ CASES = {  # (model config overrides, train config): every path through the opti
 }
 
 
+@pytest.mark.parametrize("kernel", ["python", "auto"])
 @pytest.mark.parametrize("case", list(CASES))
-def test_optimised_unroll_matches_reference(toy, case):
+def test_optimised_unroll_matches_reference(toy, case, kernel):
     task, data = toy
     overrides, cfg = CASES[case]
+    cfg = dataclasses.replace(cfg, step_kernel=kernel)
     valid = torch.arange(data.states.shape[1])[None] <= data.lengths[:, None]
     torch.manual_seed(0)
     model = STM(ModelConfig(hidden_size=16, num_layers=3, mixtures=3, **overrides), task.layout,
@@ -85,7 +90,8 @@ def test_optimised_unroll_matches_reference(toy, case):
 
 
 def test_stack_stepper_matches_nn_lstm_with_folded_normalisation():
-    """Also with a (nearly) constant input dimension: std at the floor, the input at its mean."""
+    """One model as a pack of one; also with a (nearly) constant input dimension: std at the floor, the input at
+    its mean."""
     torch.manual_seed(1)
     B, D, H, T = 5, 4, 6, 7
     lstm = torch.nn.LSTM(D, H, 3, batch_first=True)
@@ -99,11 +105,14 @@ def test_stack_stepper_matches_nn_lstm_with_folded_normalisation():
     params = [x, h0, c0, *lstm.parameters()]
     y, (hn, cn) = lstm((x - mean) / std, (h0, c0))
     ref = torch.autograd.grad((y * w).sum() + hn.sum() + cn.square().sum(), params)
-    stepper = StackStepper(lstm, std)
-    h, c, ys = list(h0.unbind(0)), list(c0.unbind(0)), []
+    layers = [tuple(getattr(lstm, f"{name}_l{k}").unsqueeze(0) for name in ("weight_ih", "weight_hh", "bias_ih",
+                                                                           "bias_hh")) for k in range(3)]
+    stepper = PackedStackStepper(layers, std)
+    h, c, ys = [v.unsqueeze(0) for v in h0.unbind(0)], [v.unsqueeze(0) for v in c0.unbind(0)], []
     for t in range(T):
-        h, c = stepper(x[:, t] - mean, h, c)
-        ys.append(h[-1])
+        h, c = stepper((x[:, t] - mean).unsqueeze(0), h, c)
+        ys.append(h[-1][0])
+    h, c = [v[0] for v in h], [v[0] for v in c]
     y2 = torch.stack(ys, dim=1)
     torch.testing.assert_close(y2, y, atol=1e-6, rtol=1e-5)
     got = torch.autograd.grad((y2 * w).sum() + torch.stack(h).sum() + torch.stack(c).square().sum(), params)

@@ -8,9 +8,9 @@ the rollouts of the trained models; and a checkpoint that code wrote mid-run, wh
 Tolerances: the old single-model and packed loops already differed in the last bits (torch.mm and oneDNN's fused
 LSTM against batched matmuls and the stepped cell), measured on the reference: weights <= 1.2e-7, losses <= 2e-6
 (absolute, on values of order 1-10), rollout joint angles <= 6e-8 rad. Asserted, with room for other CPUs' float
-rounding: losses within 1e-5 (relative and absolute), gradient norms within 1e-4 relative, weights within 1e-6
-absolute, rollout joint angles within 1e-5 rad, gripper commands equal. Seeds differ by > 1e-3 in the weights,
-so every check can fail."""
+rounding: losses within 1e-5 (relative and absolute), gradient norms within 1e-4 relative, weights within 1e-5
+absolute (2.7e-6 measured on an AMD EPYC for the plain LSTMs), rollout joint angles within 1e-5 rad, gripper
+commands equal. Seeds differ by > 1e-3 in the weights, so every check can fail."""
 
 from pathlib import Path
 
@@ -26,7 +26,7 @@ from stm.training.checkpoint import save_checkpoint
 from stm.training.loop import train, train_packed
 
 REFERENCE = Path(__file__).parent / "data" / "stm_train_reference.pt"
-LOSS_TOL, GRAD_NORM_RTOL, WEIGHT_TOL, ROLLOUT_TOL = 1e-5, 1e-4, 1e-6, 1e-5
+LOSS_TOL, GRAD_NORM_RTOL, WEIGHT_TOL, ROLLOUT_TOL = 1e-5, 1e-4, 1e-5, 1e-5
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +60,7 @@ def test_single_and_packed_training_reproduce_the_reference(reference, toy, case
     task, demos, episodes = toy
     ref = reference["cases"][case]
     model_cfg = ModelConfig.from_dict(ref["model_config"])
-    cfgs = [TrainConfig.from_dict(c) for c in ref["train_configs"]]
+    cfgs = [TrainConfig.from_dict({**c, "step_kernel": "python"}) for c in ref["train_configs"]]  # the old code's
     mode = ref["feedback"]
     for k, cfg in enumerate(cfgs):
         alone = train(model_cfg, cfg, task, demos)
@@ -80,7 +80,7 @@ def test_a_checkpoint_of_the_old_loop_resumes_to_the_reference(reference, toy, t
     ckpt = reference["checkpoint_ac-lstm-mdn_seed1_iter4"]
     ref = reference["cases"]["ac-lstm-mdn"]
     model_cfg = ModelConfig.from_dict(ckpt["model_config"])
-    cfgs = [TrainConfig.from_dict(c) for c in ref["train_configs"]]
+    cfgs = [TrainConfig.from_dict({**c, "step_kernel": "python"}) for c in ref["train_configs"]]
     alone_path, packed_path = tmp_path / "alone.pt", tmp_path / "packed.pt"
     save_checkpoint(ckpt, alone_path)
     save_checkpoint(ckpt, packed_path)

@@ -4,17 +4,17 @@
 //
 // Why C++: a self-fed step is ~330 small ATen calls (forward and backward); issued from Python each pays
 // several microseconds of binding and autograd bookkeeping, more than its arithmetic at these sizes. Here the
-// same ATen calls (the LSTM cell's and the fed-back state's elementwise ones: the same arithmetic in loops,
-// lstm_cell.h, feedback_state.h) run in the same order on the same shapes, so the forward is that of the Python
+// same ATen calls (the LSTM step's and the fed-back state's elementwise ones: the same arithmetic in loops,
+// lstm_step.h, feedback_state.h) run in the same order on the same shapes, so the forward is that of the Python
 // path (stm.lstm_step, stm.fk, stm.model.feedback_state) and the backward differs only in the order in which a few
 // gradient contributions are summed. The weight gradient is not computed per step: one product per layer and
 // chunk of steps (`weight_gradient`). What the steps write goes into buffers of the whole segment (SegLayer),
 // the products' outputs included (out= calls): no per-step allocations, and the weight gradients' rows are already
-// in place, not gathered by a cat at the end. The LSTM stack itself: lstm_cell.h.
+// in place, not gathered by a cat at the end. The LSTM stack itself: lstm_step.h.
 //
 // bf16 products (TrainConfig.matmul_dtype "bfloat16"; Segment::low): the LSTM stack's and the feedback head's
 // products, forward and backward, and the weight gradients take bf16 operands (the weights cast once per unroll, on
-// the Python side; [x, h] and d gates per step into bf16 buffers) and give float32 (lstm_cell.h, low_bmm); the
+// the Python side; [x, h] and d gates per step into bf16 buffers) and give float32 (lstm_step.h, low_bmm); the
 // state, the gate maths, the fed-back state and the tip's kinematics stay float32.
 //
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate
@@ -25,13 +25,13 @@
 #include <vector>
 
 #include "feedback_state.h"
-#include "lstm_cell.h"
+#include "lstm_step.h"
 #include "mdn_nll.h"
 
 using stm_cpp::Block;
 using stm_cpp::block_pair;
-using stm_cpp::cell_backward;
-using stm_cpp::cell_forward;
+using stm_cpp::step_backward;
+using stm_cpp::step_forward;
 using stm_cpp::fed_backward;
 using stm_cpp::fed_context;
 using stm_cpp::fed_joints;
@@ -54,7 +54,7 @@ struct Step {
   Tensor jac;  // d tip / d q (K, B, JOINTS * 3)
 };
 
-// A layer's values over the segment's n steps, in buffers written step by step (lstm_cell.h's step blocks).
+// A layer's values over the segment's n steps, in buffers written step by step (lstm_step.h's step blocks).
 // xh holds the rows of the layer's weight gradient, [x, h] per step, in the order the backward visits the steps
 // (step j at slot n - 1 - j): the product reads them in place, and the top layer's h part is what the feedback
 // head read (the rows of its weight gradient).
@@ -143,8 +143,8 @@ Tensor feedback_prediction(const Segment& seg, int64_t j, const Tensor& h_top, c
 
 // One step of the stack, bottom layer first (stm.lstm_step._stack_forward), on the segment's buffers: each layer's
 // h goes straight into the next layer's [x, h] of this step (the top's into the block) and into its own [x, h]
-// of the next step (after the last step: into h_last); c alternates between two blocks per layer (cells[k]).
-void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<Pair>& cells, const Tensor& tc,
+// of the next step (after the last step: into h_last); c alternates between two blocks per layer (c_blocks[k]).
+void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<Pair>& c_blocks, const Tensor& tc,
                 const Tensor& block, const TensorList& h_last) {
   const int64_t L = static_cast<int64_t>(seg.layers.size()), n = static_cast<int64_t>(seg.steps.size());
   for (int64_t k = 0; k < L; ++k) {
@@ -160,8 +160,8 @@ void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<
     sig.sigmoid_();
     const Block up = k + 1 < L ? slice(seg.layers[k + 1].xh, 1, seg.slot(j)) : slice(block, 2, j);
     const Block next = j + 1 < n ? slice(lay.xh, 1, seg.slot(j + 1), lay.inputs) : Block(h_last[k]);
-    const auto& c_new = cells[k][j % 2];
-    cell_forward(sig, c[k], c_new, tc, slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), up, next);
+    const auto& c_new = c_blocks[k][j % 2];
+    step_forward(sig, c[k], c_new, tc, slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), up, next);
     c[k] = c_new;
   }
 }
@@ -172,7 +172,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
     TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const Tensor& w_fb, const Tensor& b_fb,
     const Tensor& q0, const Tensor& psi, const Tensor& phi_offset, const Tensor& mean, const Tensor& lower,
     const Tensor& upper, const TensorList& fk, const std::vector<int64_t>& ints, const TensorList& low) {
-  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h, below_autograd
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_step.h, below_autograd
   auto seg = std::make_shared<Segment>();
   const int64_t degree = ints[0], slots = ints[1], monomials = ints[2];
   seg->mixtures = ints[3];
@@ -192,10 +192,10 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   if (!low.empty()) seg->fb_out = stm_cpp::bias_rows(b_fb, n, B);
   const auto block = at::empty({K, B, n, H}, h[0].options());
   const auto tc = at::empty({K, B, H}, h[0].options());
-  std::vector<Pair> cells(L);
+  std::vector<Pair> c_blocks(L);
   TensorList h_last(L);
   for (int64_t k = 0; k < L; ++k) {
-    cells[k] = block_pair({K, B, H}, h[0].options());
+    c_blocks[k] = block_pair({K, B, H}, h[0].options());
     h_last[k] = at::empty({K, B, H}, h[0].options());
     c[k] = rows_ready(c[k]);
   }
@@ -227,7 +227,7 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
       fed_context(tj.first.view({K, B, 3}), slice(offsets, 2, j), slice(psi_rows, 2, j), P, mean_rows,
                   seg->phi_start, x);
     }
-    stack_step(*seg, j, c, cells, tc, block, h_last);
+    stack_step(*seg, j, c, c_blocks, tc, block, h_last);
     q_prev = q;
   }
   return {block, h_last, c, seg};
@@ -253,7 +253,7 @@ Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, Tensor
       dh_a = zeros;
     }
     auto dgates = dg[k].select(1, seg.slot(j));
-    cell_backward(slice(lay.sig, 0, j), slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), dh_a, dh_b, gc[k], dgates,
+    step_backward(slice(lay.sig, 0, j), slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), dh_a, dh_b, gc[k], dgates,
                   gc_new);
     gc[k] = gc_new;
     Tensor w = seg.ws[k];
@@ -278,12 +278,12 @@ Tensor stack_step_backward(const Segment& seg, int64_t j, TensorList& gh, Tensor
 
 // Gradients of the segment's inputs from those of its outputs (undefined where none reached them):
 // d h, d c per layer (of the state before the segment), d w_fb, d b_fb (undefined with detached feedback),
-// and d w, d b per layer: added to dw, db where they are given (the unroll's sums, lstm_cell.h weight_gradient).
+// and d w, d b per layer: added to dw, db where they are given (the unroll's sums, lstm_step.h weight_gradient).
 std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segment_backward(
     const std::shared_ptr<Segment>& seg, const c10::optional<Tensor>& g_block,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c, TensorList dw,
     TensorList db) {
-  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h, below_autograd
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_step.h, below_autograd
   const int64_t L = static_cast<int64_t>(g_h.size()), n = static_cast<int64_t>(seg->steps.size());
   dw.resize(L);
   db.resize(L);

@@ -6,9 +6,9 @@ One training iteration = forward, loss, backward, Adam step, as stm.training.loo
 of one), on a batch at the paper's sizes: pick-place (3x128 LSTM, 20 Gaussians, batch 32, 170 steps) and
 reacher (3x64, 3 Gaussians, batch 32, 70 steps), with the task's state size.
 Timed in the same run, interleaved round by round (the machine is shared, so medians of interleaved rounds
-give fair ratios): teacher forcing (tf), auto-conditioning with u = v = 2 and u = v = 5 (tf and u = v = 5 also
-with step_kernel "cpp": the C++ self-fed segment, stm.self_fed, and the fused NLL, stm.mdn_fused: *_cpp), and a
-plain reference
+give fair ratios): teacher forcing (tf), auto-conditioning with u = v = 2 and u = v = 5, on the Python steps
+(step_kernel "python": the reference and fallback), tf and u = v = 5 also on the C++ steps (*_cpp: the C++ steps,
+stm.self_fed, and the fused NLL, stm.mdn_fused; the default's route where the extension builds), and a plain reference
 (nn.LSTM + linear MDN head + mixture NLL + Adam with clipping, a dozen lines); and the same three schedules
 for a pack of K = 3 models trained together (stm.packed): packed_speedup_* = (K x one model's ms/iter) / (the
 pack's ms/iter), packed_speedup_ac the lower of the two auto-conditioned schedules';
@@ -18,10 +18,13 @@ iteration spent in matrix products (torch.profiler; a lower bound) and packed_sp
 of K could then gain (Amdahl: products cost K-fold, the rest once); bf16_over_fp32: the tf and a.c. u = v = 5
 iterations, single and packed, with bf16 matrix products (TrainConfig.matmul_dtype) over float32, timed in the same
 rounds (the *_cpp ones: the C++ steps' bf16 products over their float32 ones); bf16_floor_ratio: ms per
-model-iteration with bf16 products / the float32 iteration's fp32 floor. The floor (stm.speed.floor): the matrix
-products of one tf and one a.c. u = v = 5 iteration, single and packed, recorded and replayed alone in fp32 and in
-bf16, timed in the same rounds; floor_ratio = ms per model-iteration / its fp32 floor; floor_ratio_warm the same
-over the warm replay (operands in cache: a lower bound under the floor). The training iterations run with subnormal
+model-iteration with bf16 products / its bf16 floor. The floor (stm.speed.floor): the FLOPs of one model's iteration
+counted from the shapes (gflop_per_model_iter: the LSTM, the head, the feedback head's rows) at the core's peak GEMM
+rate, measured in the same run on one large warm product in fp32 and bf16 (peak_gflops: 2048^3 on a CPU, the best
+of a few); floor_ratio = ms per model-iteration / (FLOPs / fp32 peak). The products an fp32 iteration calls,
+recorded and replayed alone on warm operands, timed in the same rounds: products_replayed_ms_per_model_iter, the
+rate they reach (products_replayed_gflops) and products_ratio = ms per iteration / the replay's (what the rest of
+the iteration costs on top of its own products). The training iterations run with subnormal
 floats flushed to zero, as stm.training.loop trains; --weights CHECKPOINT also times a pack of a trained
 checkpoint's copies with them flushed and kept (stm.speed.trained: on a peaked mixture head the difference is
 large). The tip kinematics of the fed-back state (stm.fk) against
@@ -53,15 +56,15 @@ from stm.config import ModelConfig, TrainConfig
 from stm.device import DeviceError, resolve_device
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
-from stm.packed import PackedAdam, PackedSTM, clip_per_model
+from stm.packed import PackedSTM
 from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.speed.bench_inputs import BenchTask, PlainMDN, bench_demos
-from stm.speed.floor import record_matmuls, replayer
+from stm.speed.floor import PEAK_SIZE, iteration_flops, peak_gflops, product_flops, record_matmuls, replayer
 from stm.speed.summary import summary
 from stm.speed.trained import trained_weights_bench
-from stm.training.autoconditioning import unroll
 from stm.training.batches import DemoTensors
+from stm.training.loop import pack_iteration
 from stm.training.subnormals import subnormals_flushed
 
 SIZES = {  # paper sizes: (hidden, mixtures, batch, steps, gripper)
@@ -97,45 +100,20 @@ def interleaved_medians(cases: dict, rounds: int, reps: int) -> dict:
     return {k: statistics.median(v) for k, v in times.items()}
 
 
-def _packed_step(task, stats, model_cfg: ModelConfig, batch, kin, k: int = PACK, state: dict | None = None):
-    """A training-iteration factory for a pack of k models (each its own seed's init, or each a copy of the weights
-    `state` (normalisation included); one model is a pack of one, as stm.training.loop trains it), every model on
-    the same batch: unroll, per-model losses, backward, per-model clipping, Adam."""
-    models = []
-    for seed in range(k):
-        torch.manual_seed(seed)
-        if state is None:
-            models.append(STM(model_cfg, task.layout, *stats))
-        else:
-            models.append(STM(model_cfg, task.layout))
-            models[-1].load_state_dict(state)
-    pack, batch, kin = PackedSTM.from_models(models).to(_device), batch.to(_device), kin.to(_device)
-    params = list(pack.stacked)
-    opt, clips, active = PackedAdam(params, [1e-4] * k), torch.ones(k), torch.arange(k)
-    gens = [torch.Generator().manual_seed(seed) for seed in range(k)]
-    states, q, psi, mask = (t.expand(k, *t.shape) for t in (batch.states, batch.q, batch.psi, batch.mask))
-    burn = None if batch.burn is None else tuple(t.expand(k, *t.shape) for t in batch.burn)
-    steps = [batch.mask.shape[1]] * k
-
+def _iterations(task, demos, model_cfg: ModelConfig, k: int = PACK):
+    """A factory: TrainConfig -> one training iteration of a pack of k models (seeds 0..k-1; one model is a pack of
+    one) on the demos, as stm.training.loop runs it (stm.training.loop.pack_iteration)."""
     def make(cfg: TrainConfig):
-        def step():
-            view = pack.view()
-            raw = unroll(view, states, q, psi, steps, task, cfg, kin, gens, burn)
-            losses = view.losses(raw, view.normalize(states[:, :, 1:]), mask, cfg.step_kernel)
-            for p in params:
-                p.grad = None
-            losses.sum().backward()
-            clip_per_model(params, clips)
-            opt.step(active)
-        return step
-
+        return pack_iteration(model_cfg, [dataclasses.replace(cfg, seed=seed) for seed in range(k)], task, demos,
+                              device=_device)
     return make
 
 
-# timed with their matrix-product floors
+# timed against their floors, their own products replayed beside them
 FLOOR_CASES = ("tf", "tf_cpp", "ac_u5v5", "ac_u5v5_cpp", "packed_tf", "packed_tf_cpp", "packed_ac_u5v5",
                "packed_ac_u5v5_cpp")
 BF16_CASES = FLOOR_CASES
+FLOOR_SCHEDULES = ("tf", "ac_u5v5")
 MATMULS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm"}
 
 
@@ -166,21 +144,29 @@ def packing_ceiling(share: float, k: int) -> float:
     return 1.0 / (share + (1.0 - share) / k)
 
 
-def training_bench(size: str, rounds: int, reps: int) -> dict:
+def _digits(x: float, n: int = 4) -> float:
+    """x to n significant digits (a tiny test size's floor is a fraction of a millisecond)."""
+    return float(f"{x:.{n}g}")
+
+
+def _schedule(case: str) -> str:
+    """The schedule a timed case runs ("packed_ac_u5v5_cpp" -> "ac_u5v5")."""
+    return case.removeprefix("packed_").removesuffix("_cpp")
+
+
+def training_bench(size: str, rounds: int, reps: int, peak: dict[str, float]) -> dict:
+    """One size's training iterations, timed side by side; `peak`: the core's GEMM GFLOP/s per product dtype
+    (fp32, bf16), measured in the same run, for the floors."""
     spec = SIZES[size]
     task = BenchTask(size, spec["gripper"])
     demos = bench_demos(spec["batch"], spec["steps"], spec["gripper"])
     data = DemoTensors.build(task, demos)
-    valid = torch.ones(data.states.shape[:2], dtype=torch.bool)
-    stats = normalization_stats(data.states, valid)
-    kin = default_tip_kinematics(torch.float32)
-    batch = data.batch(torch.arange(spec["batch"]))
+    stats = normalization_stats(data.states, torch.ones(data.states.shape[:2], dtype=torch.bool), task.layout)
     torch.manual_seed(0)
     model = STM(ModelConfig(hidden_size=spec["hidden"], num_layers=3, mixtures=spec["mixtures"]), task.layout, *stats)
     plain = PlainMDN(task.layout.dim, spec["hidden"], 3, spec["mixtures"]).to(_device)
     plain_opt = torch.optim.Adam(plain.parameters(), lr=1e-4)
-    x, y = (model.normalize(s).to(_device) for s in (batch.states[:, :-1], batch.states[:, 1:]))
-    stm_step = _packed_step(task, stats, model.config, batch, kin, k=1)  # one model: stm.training.loop's pack of one
+    x, y = (model.normalize(s).to(_device) for s in (data.states[:, :-1], data.states[:, 1:]))
     cpp_ext.self_fed_extension()  # built (or loaded) before the timing
 
     def plain_step():
@@ -191,48 +177,51 @@ def training_bench(size: str, rounds: int, reps: int) -> dict:
         plain_opt.step()
 
     # *_cpp: step_kernel "cpp", the C++ self-fed segment (stm.self_fed) and the fused NLL (stm.mdn_fused)
-    schedules = {"tf": TrainConfig(v=0), "tf_cpp": TrainConfig(v=0, step_kernel="cpp"),
-                 "ac_u2v2": TrainConfig(u=2, v=2), "ac_u5v5": TrainConfig(u=5, v=5),
-                 "ac_u5v5_cpp": TrainConfig(u=5, v=5, step_kernel="cpp")}
-    packed = _packed_step(task, stats, model.config, batch, kin)
+    base = TrainConfig(batch_size=spec["batch"], step_kernel="python")
+    schedules = {"tf": dataclasses.replace(base, v=0), "tf_cpp": dataclasses.replace(base, v=0, step_kernel="cpp"),
+                 "ac_u2v2": dataclasses.replace(base, u=2, v=2), "ac_u5v5": dataclasses.replace(base, u=5, v=5),
+                 "ac_u5v5_cpp": dataclasses.replace(base, u=5, v=5, step_kernel="cpp")}
+    single, packed = _iterations(task, demos, model.config, k=1), _iterations(task, demos, model.config)
     window, burn_in = WINDOW
-    windows = data.windows(torch.arange(spec["batch"]), window, burn_in, torch.Generator().manual_seed(0))
-    windowed = _packed_step(task, stats, model.config, data.window_batch(torch.arange(spec["batch"]), windows), kin)
-    cases = {"plain": plain_step, **{k: stm_step(c) for k, c in schedules.items()},
+    cases = {"plain": plain_step, **{k: single(c) for k, c in schedules.items()},
              **{f"packed_{k}": packed(c) for k, c in schedules.items()},
-             "packed_ac_u5v5_window": windowed(schedules["ac_u5v5"]),
-             **{f"bf16_{k}": (packed if "packed" in k else stm_step)(dataclasses.replace(
+             "packed_ac_u5v5_window": packed(dataclasses.replace(schedules["ac_u5v5"], window=window,
+                                                                 burn_in=burn_in)),
+             **{f"bf16_{k}": (packed if "packed" in k else single)(dataclasses.replace(
                  schedules[k.removeprefix("packed_")], matmul_dtype="bfloat16")) for k in BF16_CASES}}
     for fn in cases.values():  # warm-up
         fn()
     matmuls = {k: record_matmuls(cases[k]) for k in FLOOR_CASES}
-    for k, calls in matmuls.items():  # the floors, timed in the same rounds
-        cases[f"floor_fp32_{k}"], cases[f"floor_bf16_{k}"] = replayer(calls, device=_device), \
-            replayer(calls, torch.bfloat16, _device)
-        cases[f"floor_warm_{k}"] = replayer(calls, device=_device, warm=True)
+    for k, calls in matmuls.items():  # the products replayed alone, warm, timed in the same rounds
+        cases[f"products_{k}"] = replayer(calls, _device)
     med = interleaved_medians(cases, rounds, reps)
-    per_model = {k: med[k] / (PACK if "packed" in k else 1) for k in med}  # floors too
+    per_model = {k: med[k] / (PACK if "packed" in k else 1) for k in med}  # replays too
     share = matmul_share(cases["ac_u5v5"])
     speedup = {k: round(PACK * med[k] / med[f"packed_{k}"], 3) for k in ("tf", "ac_u2v2", "ac_u5v5")}
+    # the floor: each schedule's FLOPs per model-iteration at the core's peak rate, per product dtype
+    flops = {s: iteration_flops(model.config, task.layout, schedules[s], spec["batch"], spec["steps"])
+             for s in FLOOR_SCHEDULES}
+    floor = {dt: {s: flops[s]["total"] / (peak[dt] * 1e9) for s in FLOOR_SCHEDULES} for dt in peak}
     return {
         "size": size, "state_dim": task.layout.dim, **{k: spec[k] for k in ("hidden", "mixtures", "batch", "steps")},
-        "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items() if not k.startswith("floor")},
-        # the floor: the same iteration's matrix products replayed alone (stm.speed.floor), per model-iteration
-        # (a pack's divided by its K); floor_ratio = ms per model-iteration / the fp32 floor
+        "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items() if not k.startswith("products")},
         "ms_per_model_iter": {k: round(per_model[k] * 1e3, 2) for k in FLOOR_CASES},
-        "floor_ms_per_model_iter": {k: {dt: round(per_model[f"floor_{dt}_{k}"] * 1e3, 2)
-                                        for dt in ("fp32", "bf16", "warm")} for k in FLOOR_CASES},
-        "floor_ratio": {k: round(med[k] / med[f"floor_fp32_{k}"], 3) for k in FLOOR_CASES},
-        # against the warm replay (fp32, one operand per layout, in cache): the products at their best
-        "floor_ratio_warm": {k: round(med[k] / med[f"floor_warm_{k}"], 3) for k in FLOOR_CASES},
-        "bf16_floor_over_fp32_floor": {k: round(med[f"floor_bf16_{k}"] / med[f"floor_fp32_{k}"], 3)
-                                       for k in FLOOR_CASES},
+        "gflop_per_model_iter": {s: {part: _digits(n / 1e9) for part, n in f.items()} for s, f in flops.items()},
+        "floor_ms_per_model_iter": {dt: {s: _digits(v * 1e3) for s, v in f.items()} for dt, f in floor.items()},
+        # ms per model-iteration / (its FLOPs / the fp32 peak): 1 is every product at the core's best, nothing else
+        "floor_ratio": {k: round(per_model[k] / floor["fp32"][_schedule(k)], 3) for k in FLOOR_CASES},
+        # the iteration's own products replayed alone on warm operands (stm.speed.floor.replayer), per
+        # model-iteration; the rate they reach; the iteration over them
+        "products_replayed_ms_per_model_iter": {k: round(per_model[f"products_{k}"] * 1e3, 2) for k in FLOOR_CASES},
+        "products_replayed_gflops": {k: round(product_flops(c) / med[f"products_{k}"] / 1e9, 1)
+                                     for k, c in matmuls.items()},
+        "products_ratio": {k: round(med[k] / med[f"products_{k}"], 3) for k in FLOOR_CASES},
         "matmuls_per_iter": {k: len(v) for k, v in matmuls.items()},
         # TrainConfig.matmul_dtype "bfloat16": the same iteration's ms over float32's, timed in the same rounds
         "bf16_over_fp32": {k: round(med[f"bf16_{k}"] / med[k], 3) for k in BF16_CASES},
-        # with bf16 products against the fp32 floor (the float32 iteration's products replayed alone)
+        # with bf16 products, per model-iteration and over their floor (the FLOPs at the bf16 peak)
         "bf16_ms_per_model_iter": {k: round(per_model[f"bf16_{k}"] * 1e3, 2) for k in BF16_CASES},
-        "bf16_floor_ratio": {k: round(med[f"bf16_{k}"] / med[f"floor_fp32_{k}"], 3) for k in BF16_CASES},
+        "bf16_floor_ratio": {k: round(per_model[f"bf16_{k}"] / floor["bf16"][_schedule(k)], 3) for k in BF16_CASES},
         "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "tf_cpp", "ac_u5v5", "ac_u5v5_cpp")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
         "ratio_ac_u5v5_over_tf": round(med["ac_u5v5"] / med["tf"], 3),
@@ -367,11 +356,15 @@ def main(argv: list[str] | None = None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
+    peak = {name: peak_gflops(dt, _clock, _device) for name, dt in (("fp32", torch.float32), ("bf16", torch.bfloat16))}
     with subnormals_flushed():  # as stm.training.loop trains
-        training = [training_bench(s, args.rounds, args.reps) for s in args.sizes]
+        training = [training_bench(s, args.rounds, args.reps, peak) for s in args.sizes]
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
               "clock": args.clock, "device": str(_device),
               "load_average_before": [round(x, 2) for x in load_before],
+              # the core's rate on one large warm product (GFLOP per second of the clock): the floors' rate
+              "peak_gflops": {**{k: round(v, 1) for k, v in peak.items()},
+                              "size": PEAK_SIZE.get(_device.type, PEAK_SIZE["cpu"])},
               "training": training}
     if args.weights is not None:
         result["trained_weights"] = trained_weights_bench(args.weights, args.rounds, args.reps)

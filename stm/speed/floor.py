@@ -1,30 +1,97 @@
-"""The matrix-product floor of a training iteration: its matrix products replayed alone.
+"""The floor of a training iteration: its matrix products' arithmetic at the core's peak GEMM rate.
 
-An iteration's arithmetic is almost all matrix products (LSTM gates, MDN head, their
-gradients); everything else is per-op overhead and small elementwise maths. Recording
-the products one iteration calls (op, shapes, strides, dtypes) and replaying them on
-fresh tensors, without anything in between, times what the iteration could cost if
-nothing else did: the floor. The replay in bfloat16 is the floor with bf16 products.
-Fresh tensors (one per argument of each call, as the iteration's saved activations are)
-come cold from memory; the warm replay (`warm=True`) reuses one tensor per layout, as an
-iteration does where a product reads what the last op just wrote: products at their
-best, a lower bound under the floor (measured about 0.75-0.8x of it at the pick-and-place size).
+An iteration's arithmetic is almost all matrix products (the LSTM's gates, the mixture head, the feedback head's
+rows, their gradients); everything else is elementwise maths and per-op overhead. `iteration_flops` counts the
+products' floating-point operations (2 M N K each) from the shapes (the model's, the batch's and the schedule's);
+`peak_gflops` measures the rate this core reaches on one large warm product (2048^3 on a CPU: warm-up, then the best
+of a few); their quotient is the floor, the time the iteration could take if it did nothing but its products, each
+at the core's best. The bench's floor_ratio is the iteration's time over it (stm.speed.bench).
 
-A fused LSTM layer (oneDNN's, behind nn.LSTM on the CPU; its input is time-major) does
-its products inside one op; it is recorded as the products an unfused layer needs: the
-input projection of all steps at once, one recurrent product per step, and backward the
-same transposed plus the two weight gradients over all steps at once. (oneDNN's fused
-layer can beat these, so a teacher-forced iteration may come close to its floor.)
+`record_matmuls` and `replayer` time the products the iteration really calls (op, shapes, strides, dtypes), replayed
+alone on warm operands (one tensor per layout, in cache): what the iteration's own product shapes cost at best, which
+small per-step products may leave well above the floor. Products issued outside ATen's dispatcher (the C++ steps'
+bf16 GEMM through MKL) are not seen there.
+
+A fused LSTM layer (oneDNN's, behind nn.LSTM on the CPU; its input is time-major) does its products inside one op;
+it is recorded as the products an unfused layer needs: the input projection of all steps at once, one recurrent
+product per step, and backward the same transposed plus the two weight gradients over all steps at once.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_map
 
+from envs.tasks.base import StateLayout
+from stm.config import ModelConfig, TrainConfig
+
 aten = torch.ops.aten
 MATMUL_OPS = {aten.mm, aten.addmm, aten.bmm, aten.baddbmm, aten.addbmm, aten.mv, aten.addmv, aten.dot}
+POINT_FEEDBACKS = ("component_mean", "mixture_mean")  # the self-fed steps read only the head rows they need
+PEAK_SIZE = {"cpu": 2048, "cuda": 8192}  # the square product the peak is measured on, per device type
+
+
+def _self_fed_steps(T: int, u: int, v: int) -> int:
+    """Self-fed input steps of T under [gt]*u + [self]*v repeated (stm.training.autoconditioning.schedule)."""
+    if v == 0:
+        return 0
+    full, rest = divmod(T, u + v)
+    return full * v + max(0, rest - u)
+
+
+def iteration_flops(model_cfg: ModelConfig, layout: StateLayout, cfg: TrainConfig, batch: int, steps: int
+                    ) -> dict[str, int]:
+    """Floating-point operations of one model's training iteration on `batch` sequences of `steps` inputs (the
+    whole demos) under cfg's schedule: the matrix products an unfused step-by-step LSTM stack, the head and the
+    feedback head's rows need, forward and backward. Per part: lstm, head, feedback and their total.
+
+    lstm: per layer and step the gates' product ([x, h] -> 4H) forward, its weight gradient, and the gradient of
+    [x, h], less the bottom layer's input gradient wherever the input is not fed back (ground truth, or detached
+    feedback). head: the head on every step's top hidden state, forward, its input and weight gradients. feedback:
+    on each self-fed step the head rows the fed-back state reads (the mixture logits and the first `dims` mean
+    coordinates per component, or `dims` outputs of a deterministic head), forward and, unless detached, both
+    gradients. Sampled feedback reads the whole head per step and is not counted (a ValueError)."""
+    if cfg.v > 0 and model_cfg.head == "mdn" and cfg.feedback not in POINT_FEEDBACKS:
+        raise ValueError(f"the floor counts point feedback ({', '.join(POINT_FEEDBACKS)}), not {cfg.feedback!r}")
+    H, L, D, N = model_cfg.hidden_size, model_cfg.num_layers, layout.dim, batch * steps
+    fed = batch * _self_fed_steps(steps, cfg.u, cfg.v)
+    gates = 4 * H
+    inputs = [D + H] + [2 * H] * (L - 1)  # [x, h] per layer
+    forward = sum(2 * N * gates * i for i in inputs)
+    input_grad_rows = 0 if cfg.detach_feedback else fed  # the bottom layer's x gradient: fed-back rows only
+    data_grad = forward - 2 * (N - input_grad_rows) * gates * D
+    lstm = 2 * forward + data_grad  # forward, weight gradient, [x, h] gradient
+    m = model_cfg.mixtures
+    out = m * (D + 2) if model_cfg.head == "mdn" else D
+    head = 3 * 2 * N * H * out
+    dims = layout.phi.stop if cfg.phi_mode == "free" else layout.phi.start
+    rows = m + m * dims if model_cfg.head == "mdn" else dims
+    feedback = (1 if cfg.detach_feedback else 3) * 2 * fed * H * rows
+    return {"lstm": lstm, "head": head, "feedback": feedback, "total": lstm + head + feedback}
+
+
+def peak_gflops(dtype: torch.dtype, clock: Callable[[], float], device: torch.device | None = None,
+                n: int | None = None, reps: int = 5) -> float:
+    """GFLOP per second of `clock` of one warm n^3 product in `dtype` (n: PEAK_SIZE of the device's type): a
+    warm-up, then the best of `reps` (the least disturbed by other load)."""
+    device = device or torch.device("cpu")
+    n = n or PEAK_SIZE.get(device.type, PEAK_SIZE["cpu"])
+    a, b = (torch.randn(n, n, device=device).to(dtype) for _ in range(2))
+    out = torch.empty(n, n, dtype=dtype, device=device)
+
+    def product() -> float:
+        start = clock()
+        torch.mm(a, b, out=out)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return clock() - start
+
+    product()
+    best = min(product() for _ in range(reps))
+    return 2 * n ** 3 / max(best, 1e-9) / 1e9
 
 
 class _Spec:
@@ -42,10 +109,11 @@ class _Spec:
         """A contiguous matrix, or the transposed view of a contiguous (cols, rows) one."""
         return cls((rows, cols), (1, rows) if transposed else (cols, 1), dtype)
 
-    def make(self, dtype: torch.dtype | None, device: torch.device | None = None) -> torch.Tensor:
-        dtype = dtype if dtype is not None and self.dtype.is_floating_point else self.dtype
+    def make(self, device: torch.device | None = None) -> torch.Tensor:
         size = 1 + sum((n - 1) * s for n, s in zip(self.shape, self.stride, strict=True) if n > 0)
-        return torch.randn(size, dtype=dtype, device=device).as_strided(self.shape, self.stride)
+        values = torch.randn(size, device=device) if self.dtype.is_floating_point else \
+            torch.zeros(size, device=device)
+        return values.to(self.dtype).as_strided(self.shape, self.stride)
 
 
 def _lstm_layer(x: torch.Tensor, w_ih: torch.Tensor, backward: bool) -> list[tuple]:
@@ -84,20 +152,28 @@ def record_matmuls(fn) -> list[tuple]:
     return rec.calls
 
 
-def replayer(calls: list[tuple], dtype: torch.dtype | None = None, device: torch.device | None = None,
-             warm: bool = False):
-    """A function that calls the recorded products again, in order, on fresh random tensors (in `dtype` where
-    given: every floating-point argument cast to it; on `device`, the CPU by default), or with `warm` on one
-    tensor per layout, reused by every call (in cache). On CUDA the fused LSTM's products (cuDNN's, not
-    oneDNN's) are not recorded: the floor of a teacher-forced iteration leaves them out."""
+def product_flops(calls: list[tuple]) -> int:
+    """Floating-point operations of recorded products: 2 M N P per (batch of) (M, P) @ (P, N) (a vector's N = 1)."""
+    total = 0
+    for _op, args, _kwargs in calls:
+        a, b = [x for x in args if isinstance(x, _Spec) and len(x.shape) >= 1][-2:]
+        batches = a.shape[0] if len(a.shape) == 3 else 1
+        rows = a.shape[-2] if len(a.shape) >= 2 else 1
+        cols = b.shape[-1] if len(b.shape) >= 2 else 1
+        total += 2 * batches * rows * a.shape[-1] * cols
+    return total
+
+
+def replayer(calls: list[tuple], device: torch.device | None = None):
+    """A function that calls the recorded products again, in order, on one random tensor per layout (on `device`,
+    the CPU by default), reused by every call: warm in cache, as an iteration's products read what the op before
+    just wrote. On CUDA the fused LSTM's products (cuDNN's, not oneDNN's) are not recorded."""
     shared: dict[tuple, torch.Tensor] = {}
 
     def operand(spec: _Spec) -> torch.Tensor:
-        if not warm:
-            return spec.make(dtype, device)
         key = (spec.shape, spec.stride, spec.dtype)
         if key not in shared:
-            shared[key] = spec.make(dtype, device)
+            shared[key] = spec.make(device)
         return shared[key]
 
     made = [(func, *tree_map(lambda a: operand(a) if isinstance(a, _Spec) else a, (args, kwargs)))

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 
 def summary(result: dict) -> str:
-    lines = [f"torch {result['torch']}, {result['threads']} thread(s), load {result['load_average_before'][0]:.1f}"]
+    peak = result["peak_gflops"]
+    lines = [f"torch {result['torch']}, {result['threads']} thread(s), load {result['load_average_before'][0]:.1f}, "
+             f"peak GEMM ({peak['size']}^3) {peak['fp32']:.0f} GFLOP/s fp32, {peak['bf16']:.0f} bf16"]
     for r in result["training"]:
         ms = r["ms_per_iter"]
         lines.append(f"{r['size']:>10} (3x{r['hidden']}, {r['mixtures']} Gaussians, batch {r['batch']}, "
@@ -14,13 +16,15 @@ def summary(result: dict) -> str:
                      f" tf/plain {r['ratio_tf_over_plain']:.2f} | packed x{r['packed_k']}: speedup tf "
                      f"{r['packed_speedup_tf']:.2f}, ac {r['packed_speedup_ac']:.2f} | windows of {r['window']} "
                      f"after {r['burn_in']}: x{r['window_speedup_packed_ac_u5v5']:.2f} per packed ac5 iteration")
-        lines.append(f"{'':>10} matrix-product floor, ms per model-iteration fp32/bf16/warm: "
-                     + ", ".join(f"{k} {v['fp32']:.1f}/{v['bf16']:.1f}/{v['warm']:.1f}"
-                                 for k, v in r["floor_ms_per_model_iter"].items())
+        floor = r["floor_ms_per_model_iter"]
+        lines.append(f"{'':>10} floor (GFLOP at the peak), ms per model-iteration fp32/bf16: "
+                     + ", ".join(f"{s} {r['gflop_per_model_iter'][s]['total']:.2f} GFLOP "
+                                 f"{floor['fp32'][s]:.1f}/{floor['bf16'][s]:.1f}" for s in floor["fp32"])
                      + " | floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio"].items())
-                     + " | warm " + ", ".join(f"{k} {v:.2f}" for k, v in r["floor_ratio_warm"].items())
-                     + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items())
-                     + " | bf16/fp32 floor " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_floor_ratio"].items()))
+                     + " | bf16 floor_ratio " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_floor_ratio"].items())
+                     + " | over the products replayed " + ", ".join(f"{k} {v:.2f}"
+                                                                   for k, v in r["products_ratio"].items())
+                     + " | bf16/fp32 " + ", ".join(f"{k} {v:.2f}" for k, v in r["bf16_over_fp32"].items()))
     if "trained_weights" in result:
         tw = result["trained_weights"]
         lines.append(f"{tw['checkpoint']} ({tw['task']}, iteration {tw['iteration']}, {tw['head']} head, u={tw['u']} "

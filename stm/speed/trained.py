@@ -9,29 +9,26 @@ stm.training.loop trains) and kept (IEEE), interleaved round by round: subnormal
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
-import torch
-
 from stm.config import ModelConfig, TrainConfig
-from stm.training.batches import DemoTensors
 from stm.training.checkpoint import load_checkpoint
+from stm.training.loop import pack_iteration
 from stm.training.subnormals import subnormals_flushed
 
 
 def trained_weights_bench(path: Path, rounds: int, reps: int) -> dict:
     from envs.datasets import load_demos
     from envs.tasks import get_task
-    from stm.fk import default_tip_kinematics
     from stm.speed import bench
 
     ckpt = load_checkpoint(path)
     model_cfg, train_cfg = ModelConfig.from_dict(ckpt["model_config"]), TrainConfig.from_dict(ckpt["train_config"])
     task = get_task(ckpt["task"])
-    data = DemoTensors.build(task, load_demos(task, 0))
-    batch = data.batch(torch.arange(min(train_cfg.batch_size, len(data.lengths))))
-    kin = default_tip_kinematics(torch.float32)
-    step = bench._packed_step(task, None, model_cfg, batch, kin, state=ckpt["model"])(train_cfg)
+    demos = load_demos(task, 0)
+    cfgs = [dataclasses.replace(train_cfg, seed=seed) for seed in range(bench.PACK)]
+    step = pack_iteration(model_cfg, cfgs, task, demos, states=[ckpt["model"]] * bench.PACK, device=bench._device)
 
     def mode(flush: bool):
         def call():
@@ -45,6 +42,7 @@ def trained_weights_bench(path: Path, rounds: int, reps: int) -> dict:
     med = bench.interleaved_medians(cases, rounds, reps)
     return {"checkpoint": Path(path).name, "task": ckpt["task"], "iteration": int(ckpt["iteration"]),
             "head": model_cfg.head, "u": train_cfg.u, "v": train_cfg.v, "step_kernel": train_cfg.step_kernel,
-            "packed_k": bench.PACK, "batch": int(batch.states.shape[0]), "steps": int(batch.mask.shape[1]),
+            "packed_k": bench.PACK, "batch": min(train_cfg.batch_size, len(demos)),
+            "steps": train_cfg.window or int(demos.lengths.max()) + train_cfg.hold_steps,
             "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items()},
             "subnormal_slowdown": round(med["ieee"] / med["flushed"], 3)}

@@ -142,6 +142,31 @@ def train_packed(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Ta
             for k, s in enumerate(run.seeds)]
 
 
+def pack_iteration(model_cfg: ModelConfig, train_cfgs: list[TrainConfig], task: Task, demos: Demos, *,
+                   states: list[dict] | None = None, device: str | torch.device = "cpu") -> Callable[[], None]:
+    """train_packed's iteration for these seeds, one per call (each seed draws its next batch and steps; no
+    checkpoints, callbacks or end): what `python -m stm.speed.bench` times. states: STM state dicts the seeds start
+    from (a checkpoint's weights and normalisation, one for all) instead of their initialisation. A seed that
+    diverges raises its failure."""
+    check_packable([model_cfg] * len(train_cfgs), train_cfgs)
+    K = len(train_cfgs)
+    run = _PackRun(model_cfg, train_cfgs, task, demos.with_hold(train_cfgs[0].hold_steps), [None] * K, None, None,
+                   None, resolve_device(device))
+    for k, state in enumerate(states or []):  # the checkpoint's normalisation, then its weights
+        run.pack.state_mean.copy_(state["state_mean"])
+        run.pack.state_std.copy_(state["state_std"])
+        run.pack.load_model_state(k, state)
+    active = list(range(K))
+
+    def step() -> None:
+        run.step(active)
+        for s in run.seeds:
+            if s.failure is not None:
+                raise s.failure
+
+    return step
+
+
 def use_graphs(device: torch.device, cfg: TrainConfig) -> bool:
     """Whether a run replays captured CUDA graphs of its iterations (stm.training.cuda_graph)."""
     return device.type == "cuda" and capturable(cfg)

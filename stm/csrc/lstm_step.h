@@ -1,5 +1,5 @@
-// The LSTM stack of the C++ steps (stm/csrc/self_fed.cpp): the cell's forward and backward on step blocks, and
-// runs of known inputs layer by layer, on ATen products and the cell's elementwise maths in plain loops.
+// The LSTM stack of the C++ steps (stm/csrc/self_fed.cpp): one step's forward and backward on step blocks, and
+// runs of known inputs layer by layer, on ATen products and the step's elementwise maths in plain loops.
 //
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate columns
 // i, f, o, 2g (stm.lstm_step.gate_order); b (K, 1, 4H).
@@ -31,13 +31,13 @@ using Pair = std::array<Tensor, 2>;
 // Two contiguous blocks a run of steps alternates between (each step reads one and writes the other).
 Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options);
 
-// One cell step forward from the gate sigmoids sig (K, B, 4H): c_new, h (and a copy of h in h2 where given),
+// One LSTM step forward from the gate sigmoids sig (K, B, 4H): c_new, h (and a copy of h in h2 where given),
 // the saved gd, o_dt; tc (K, B, H) is scratch (tanh(c_new)). All are step blocks, written in place.
-void cell_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
+void step_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
                   const Block& o_dt, const Block& h, const Block& h2);
-// One cell step backward: d gates and grad_c (K, B, H), the gradient of the previous cell state, from
+// One LSTM step backward: d gates and grad_c (K, B, H), the gradient of the previous cell state, from
 // dh = dh_a (+ dh_b where given) and gc (none: zero). Step blocks, the outputs written in place.
-void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
+void step_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
                    const Block& gc, const Block& dgates, const Tensor& grad_c);
 // t where its last dimension is contiguous, else a contiguous copy (gradients may come expanded).
 Tensor rows_ready(const Tensor& t);

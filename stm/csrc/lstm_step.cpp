@@ -1,6 +1,6 @@
-// The LSTM stack of the C++ steps: see lstm_cell.h. (Edit this file with the header: the build is keyed on the
+// The LSTM stack of the C++ steps: see lstm_step.h. (Edit this file with the header: the build is keyed on the
 // sources only.)
-#include "lstm_cell.h"
+#include "lstm_step.h"
 
 #include "rows.h"
 
@@ -35,7 +35,7 @@ Operand operand(const Tensor& t) {
   return {t.contiguous(), false, c};
 }
 
-// The LSTM cell's elementwise maths in plain loops, one pass before ATen's tanh and one after, instead of a
+// The LSTM step's elementwise maths in plain loops, one pass before ATen's tanh and one after, instead of a
 // dozen ATen calls: the same arithmetic, operation for operation, as those calls of stm.lstm_step (addcmul(a, b,
 // c, value) is a + value * b * c), so the results are those of the Python steps. s holds a row's gate sigmoids
 // i, f, o and sigmoid(2 g_pre), so that g = 2 s - 1. The pointers are __restrict__ (each row's outputs are
@@ -179,17 +179,17 @@ Tensor product(const Tensor& a, const Tensor& b) {
   return out;
 }
 
-void cell_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
+void step_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
                   const Block& o_dt, const Block& h, const Block& h2) {
   const int64_t K = tc.size(0), B = tc.size(1), H = tc.size(2);
-  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "cell_pass1", [&] {
+  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "step_pass1", [&] {
     const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), cn = rows<scalar_t>(c_new);
     for (int64_t k = 0; k < K; ++k)
       for (int64_t b = 0; b < B; ++b) pass1_row<scalar_t>(s.at(k, b), cr.at(k, b), cn.at(k, b), H);
   });
   Tensor tanh_c = tc;  // out= takes a mutable handle
   at::tanh_out(tanh_c, c_new);
-  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "cell_pass2", [&] {
+  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "step_pass2", [&] {
     const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), tr = rows<scalar_t>(tc), hr = rows<scalar_t>(h),
                h2r = rows<scalar_t>(h2), d = rows<scalar_t>(gd), od = rows<scalar_t>(o_dt);
     for (int64_t k = 0; k < K; ++k) {
@@ -206,11 +206,11 @@ void cell_forward(const Block& sig, const Block& c, const Tensor& c_new, const T
   });
 }
 
-void cell_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
+void step_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
                    const Block& gc, const Block& dgates, const Tensor& grad_c) {
   const int64_t K = grad_c.size(0), B = grad_c.size(1), H = grad_c.size(2);
   const bool has_gc = gc.data != nullptr, has_dh_b = dh_b.data != nullptr;
-  AT_DISPATCH_FLOATING_TYPES(grad_c.scalar_type(), "cell_backward", [&] {
+  AT_DISPATCH_FLOATING_TYPES(grad_c.scalar_type(), "step_backward", [&] {
     using T = scalar_t;
     const auto s = rows<T>(sig), d = rows<T>(gd), od = rows<T>(o_dt), a = rows<T>(dh_a), b = rows<T>(dh_b),
                g = rows<T>(gc), dg = rows<T>(dgates), gr = rows<T>(grad_c);
@@ -301,7 +301,7 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
   }
   lay.gd = step_buffer(n, x, K, B, 4 * H);
   lay.o_dt = step_buffer(n, x, K, B, H);
-  const auto cells = block_pair({K, B, H}, x.options());
+  const auto c_blocks = block_pair({K, B, H}, x.options());
   const auto tc = at::empty({K, B, H}, x.options());
   Tensor c = rows_ready(c0);
   for (int64_t t = 0; t < n; ++t) {
@@ -315,8 +315,8 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
     sig.sigmoid_();
     const Block up = k + 1 < layers.size() ? slice(layers[k + 1].xh, 2, t) : slice(out, 2, t);
     const Block next = t + 1 < n ? slice(lay.xh, 2, t + 1, I) : Block(h_last);
-    cell_forward(sig, c, cells[t % 2], tc, slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), up, next);
-    c = cells[t % 2];
+    step_forward(sig, c, c_blocks[t % 2], tc, slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), up, next);
+    c = c_blocks[t % 2];
   }
   return c;
 }
@@ -326,7 +326,7 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
 std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Sequence>> sequence_forward(
     Tensor x, TensorList h, TensorList c, const TensorList& ws, const TensorList& bs, const TensorList& w_h_in,
     const TensorList& w_hT, const TensorList& low) {
-  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_step.h
   auto seq = std::make_shared<Sequence>();
   seq->ws = ws;
   seq->w_hT = w_hT;
@@ -349,7 +349,7 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const std::shared_ptr<Sequence>& seq, const c10::optional<Tensor>& g_out_top,
     const std::vector<c10::optional<Tensor>>& g_h, const std::vector<c10::optional<Tensor>>& g_c, TensorList dw,
     TensorList db) {
-  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_cell.h
+  const at::AutoDispatchBelowADInplaceOrView below_autograd;  // see lstm_step.h
   const int64_t L = static_cast<int64_t>(seq->layers.size());
   TensorList dh0(L), dc0(L);
   dw.resize(L);
@@ -373,7 +373,7 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const auto dcs = block_pair({K, B, H}, opt);
     for (int64_t t = n - 1; t >= 0; --t) {
       const auto dg_t = dg.select(2, t);
-      cell_backward(slice(lay.sig, 2, t), slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), dh_rec,
+      step_backward(slice(lay.sig, 2, t), slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), dh_rec,
                     g_out.defined() ? slice(g_out, 2, t) : Block(), dc, dg_t, dcs[t % 2]);
       dc = dcs[t % 2];
       if (w_low.defined()) {
