@@ -1,4 +1,7 @@
-"""The robot, the tasks and their demonstrations, in pybullet."""
+"""The robot, the tasks and their demonstrations, in pybullet: the Sawyer (robot), its scenes and physics playback
+(sim), the blocks of pick-and-place and stacking (blocks), forward kinematics (kinematics) and inverse kinematics
+(ik), the demonstration datasets (datasets), 3D figures of a task (render), and for every package the figure files
+(figure_files) and atomic writes (fileio). Subpackage: tasks (the task registry and one module per task)."""
 
 import os
 import sys

@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import random
+import re
 import tempfile
 import time
 import traceback
@@ -38,6 +39,10 @@ log = logging.getLogger(__name__)
 CHECKPOINT_NAME = "model.pt"
 CHECKPOINT_DIR = "checkpoint"
 KEPT_CHECKPOINT_DIR = "checkpoint_at"  # checkpoint_at/<iteration>/model.pt: copies kept by Cell.keep_checkpoints
+# weights_at/<iteration>/weights.pt: a model's weights alone (stm.training.weights), as an imported study export
+# that carries models brings them (reports.data.export --with-models); the milestones verb evaluates them
+WEIGHTS_DIR = "weights_at"
+WEIGHTS_NAME = "weights.pt"
 # Test hooks (never set in normal use): once a checkpoint is in the store, append "<run_id> <iteration>"
 # to the file named by SIGNAL_FILE_ENV, and with HOLD_ENV=1 then wait there until killed or interrupted,
 # so a fault test kills or interrupts a cell at a known point instead of racing its training.
@@ -54,6 +59,9 @@ class CellResult:
     metrics: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
     resumed_from: int = 0
+    # a store fault (experiments/runtime/store_faults.py) stopped the cell: nothing more was written, its run stays
+    # resumable, and the study stops
+    store_fault: str = ""
 
 
 def seed_everything(seed: int) -> None:
@@ -101,10 +109,18 @@ def setup_process(log_level: int, threads: int | None) -> None:
     """Logging and torch threads of a worker process (`threads`: so that K workers do not
     oversubscribe the cores)."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(processName)s %(name)s: %(message)s")
+    quiet_store_errors(log_level)
     if threads:
         import torch
 
         torch.set_num_threads(threads)
+
+
+def quiet_store_errors(log_level: int) -> None:
+    """MLflow logs every SQL error with its traceback before raising it, which the caller reports in one line
+    (a store fault: experiments/runtime/store_faults.py): the traceback only with debug logging."""
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.DEBUG if log_level <= logging.DEBUG
+                                                        else logging.CRITICAL)
 
 
 def as_cell(cell: Cell | dict[str, Any]) -> Cell:
@@ -128,13 +144,14 @@ def run_cell(cell: Cell | dict[str, Any], uri: str, run_id: str, progress: bool 
 
     setup_process(log_level, threads)
     cell = as_cell(cell)
-    client = Client(uri)
+    client = Client(uri, create=False)
     start = time.perf_counter()
     run = CellRun(cell, client, run_id)
     try:
         with tempfile.TemporaryDirectory(prefix="acrmdn-cell-") as tmp:
             run.start(Path(tmp))
             task, demos = load_task(cell)
+            run.check_checkpoint(task)
             seed_everything(cell.seed)
             log.info("cell %s: training %d iterations (from %d)", cell.key, cell.train.iters, run.resumed_from)
             result = train(cell.model, cell.train, task, demos, checkpoint_path=run.ckpt_path, resume=True,
@@ -170,6 +187,35 @@ def mark_killed(client: Client, run_ids: list[str]) -> None:
                 client.set_terminated(run_id, "KILLED")
         except Exception:  # best effort on the way out; the run stays resumable either way
             log.warning("could not mark run %s KILLED", run_id)
+
+
+class CheckpointMismatch(ValueError):
+    """A cell's checkpoint artifact trained with another config; str() names the command that discards it."""
+
+
+def _mismatch(exc: ValueError, ckpt: dict, cell: Cell) -> str:
+    """What stm.training.checkpoint.check_resumable refused, in a few words (its message holds whole configs)."""
+    text = str(exc)
+    if "another model config" in text:
+        saved, now = ckpt.get("model_config", {}), cell.model.to_dict()
+        differ = sorted(k for k in {**saved, **now} if saved.get(k) != now.get(k))
+        return f"was trained with another model config (differing in {', '.join(differ)})"
+    if "state layout" in text:
+        return "was trained on another state layout"
+    settings = re.search(r"with other settings \(([^)]*)\)", text)
+    if settings:
+        return f"was trained with other training settings (differing in {settings.group(1)})"
+    return f"does not fit this cell ({text.splitlines()[0][:200]})"
+
+
+def discard_command(run_id: str) -> str:
+    """The command that discards a cell's run, checkpoint included (a re-run of the study then trains the cell
+    from scratch in a new run); the store named as the user's environment names it, never by a path."""
+    from experiments.runtime.tracking import DEFAULT_TRACKING_URI
+
+    uri = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
+    env = "" if uri else f"MLFLOW_TRACKING_URI={DEFAULT_TRACKING_URI} "  # the mlflow CLI's own default is ./mlruns
+    return f"`{env}mlflow runs delete --run-id {run_id}`"
 
 
 class CellRun:
@@ -212,7 +258,11 @@ class CellRun:
                 log.info("cell %s resumes from its checkpoint at iteration %d", cell.key, self.resumed_from)
                 set_tags(client, run_id, {"resumed_from_iteration": self.resumed_from})
         previous = client.get_run(run_id).data.tags.get(TRAINED_ON, "")
-        route = trained_on(previous, self.resumed_from, git_commit(), cell.train.step_kernel)
+        from stm.cpp_ext import step_kernel
+        from stm.device import resolve_device
+
+        ran = step_kernel(cell.train.step_kernel, resolve_device(cell.device).type)  # the kernel that runs, not asked
+        route = trained_on(previous, self.resumed_from, git_commit(), ran)
         if route != previous:
             set_tags(client, run_id, {TRAINED_ON: route})
         # a resumed run recomputes the steps after its checkpoint exactly: drop the ones already logged
@@ -220,9 +270,25 @@ class CellRun:
         logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) if fetched is not None else -1
         self.buffer = MetricBuffer(client, run_id, skip_through=logged)
 
+    def check_checkpoint(self, task) -> None:
+        """The checkpoint to resume from belongs to this cell's config (model, state layout, training settings),
+        else CheckpointMismatch: the cell fails before training, naming the command that discards it."""
+        from stm.training.checkpoint import check_resumable, load_checkpoint
+
+        if self.ckpt_path is None or not self.ckpt_path.is_file():
+            return
+        ckpt = load_checkpoint(self.ckpt_path)
+        try:
+            check_resumable(ckpt, self.cell.model, self.cell.train, task, self.ckpt_path)
+        except ValueError as exc:
+            raise CheckpointMismatch(f"the checkpoint artifact of run {self.run_id} {_mismatch(exc, ckpt, self.cell)} "
+                                     f"(another cell's?); to discard it and train this cell from scratch: "
+                                     f"{discard_command(self.run_id)}, then re-run the study") from None
+
     def on_checkpoint(self, path: Path, iteration: int, signal: bool = True) -> None:
         """The checkpoint into the store; then the fault tests' hook unless `signal` is False
-        (a pack signals its seeds together)."""
+        (a pack signals its seeds together). A store file that disappeared stops the cell here (StoreFault)."""
+        self.client.check_store()
         self.buffer.flush()
         self.client.log_artifact(self.run_id, str(path), CHECKPOINT_DIR)
         every = self.cell.keep_checkpoints
@@ -282,7 +348,15 @@ class CellRun:
                           seconds=time.perf_counter() - start, resumed_from=self.resumed_from)
 
     def failed(self, exc: BaseException, start: float) -> CellResult:
-        """FAILED with its reason (an exception raised, or a stm.training.loop.TrainingDiverged reported)."""
+        """FAILED with its reason (an exception raised, or a stm.training.loop.TrainingDiverged reported). A store
+        fault writes nothing more: the run stays as it is, resumable from its last checkpoint artifact."""
+        from experiments.runtime.store_faults import fault_reason
+
+        reason = fault_reason(exc)
+        if reason is not None:
+            log.warning("cell %s stopped: the store failed (%s); its run stays resumable", self.cell.key, reason)
+            return CellResult(self.cell.key, self.run_id, "FAILED", error=f"store fault: {reason}",
+                              seconds=time.perf_counter() - start, resumed_from=self.resumed_from, store_fault=reason)
         text = f"{type(exc).__name__}: {exc}"
         log.error("cell %s failed: %s", self.cell.key, text)
         trace = "".join(traceback.format_exception(exc))[-4000:]

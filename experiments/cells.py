@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from experiments.study_config import EvalConfig, StudyConfig, config_hash, evaluation_tasks
+from experiments.study_config import EvalConfig, StudyConfig, config_hash, evaluation_tasks, hashed_eval
 from stm.config import ModelConfig, TrainConfig
 
 
@@ -43,9 +43,7 @@ class Cell:
 
     def eval_dict(self) -> dict[str, Any]:
         out = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self.eval).items()}
-        if not out.get("mode_repeats"):  # absent when 0: cells of studies before the option keep their hashes
-            out.pop("mode_repeats", None)
-        return out
+        return hashed_eval(out)  # options at their default absent: cells of studies before them keep their hashes
 
     @property
     def config_hash(self) -> str:

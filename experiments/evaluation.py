@@ -5,8 +5,10 @@ mean, the task's own breakdowns, timings). Each call builds its own tasks and py
 scenes, so it is safe in parallel worker processes.
 
 Protocol: each training seed is evaluated on its own episodes (`episode_seed`), and a model
-trained to feed back samples of its mixture is evaluated sampling (`rollout_feedback`).
-Everything task-specific (episodes, metrics, the expert) comes from the task object."""
+trained to feed back samples of its mixture is evaluated sampling (`rollout_feedback`). The eval
+section's split picks the episodes: "test" (the headline's) or "validation" (disjoint ones, on which
+protocol choices are made; `split_seed`). Everything task-specific (episodes, metrics, the expert)
+comes from the task object."""
 
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from envs.figure_files import save_figure
+from experiments.eval_sweep_config import SPLITS, VALIDATION_SEED_OFFSET
 from experiments.mode_repeats import mode_metrics, repeat_rollouts, task_modes
 from experiments.stats import run_success_metrics
 
@@ -50,6 +53,17 @@ def episode_seed(eval_seed: int, train_seed: int) -> int:
     return int(eval_seed) + int(train_seed)
 
 
+def split_seed(eval_cfg: Mapping[str, Any]) -> int:
+    """The eval seed of the episodes the eval section's split asks for: eval.seed for "test" (the headline's
+    episodes), eval.seed + VALIDATION_SEED_OFFSET for "validation" (those protocol choices are made on). Every
+    training seed adds itself (episode_seed), so with fewer than VALIDATION_SEED_OFFSET training seeds no
+    validation episode seed is a test one: validation 20,000 + s against test 10,000 + s by default."""
+    split = eval_cfg.get("split", "test")
+    if split not in SPLITS:
+        raise ValueError(f"eval.split: {split!r} is not allowed; allowed: {', '.join(SPLITS)}")
+    return int(eval_cfg["seed"]) + (VALIDATION_SEED_OFFSET if split == "validation" else 0)
+
+
 def rollout_feedback(eval_feedback: str, train_feedback: str | None) -> str:
     """What the rollouts feed back: a model trained on samples of its mixture is evaluated
     sampling too; otherwise the eval section's choice (deterministic heads ignore it)."""
@@ -69,8 +83,8 @@ def task_metrics(task, results: list[dict[str, float]], episodes: list) -> dict[
     if results and "success" in results[0]:
         for k, v in run_success_metrics([r["success"] for r in results]).items():
             out[f"{name}/{k}"] = v
-    keys = sorted({k for r in results for k in r} - {"success"})
-    for k in keys:  # every task metric's mean, e.g. final_distance_mean
+    keys = sorted({k for r in results for k, v in r.items() if _is_number(v)} - {"success"})
+    for k in keys:  # every numeric task metric's mean, e.g. final_distance_mean (a per-episode list has none)
         out[f"{name}/{k}_mean"] = _mean([r.get(k, math.nan) for r in results])
     for k, v in task.episode_metrics(results, episodes).items():
         out[f"{name}/{k}"] = v
@@ -98,7 +112,7 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: Mapping[str, Any], *,
     gen_kwargs: dict[str, Any] = {"feedback": feedback, "seed": seed, "phi_mode": phi_mode}
     if feedback == "sample":
         gen_kwargs["temperature"] = temperature
-    ep_seed = episode_seed(int(eval_cfg["seed"]), seed)
+    ep_seed = episode_seed(split_seed(eval_cfg), seed)
     repeats = int(eval_cfg.get("mode_repeats", 0) or 0)
     for name in eval_tasks:
         task = task_class(name).for_evaluation(data, eval_cfg)
@@ -192,13 +206,26 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, numbers.Real | np.bool_)
 
 
+def _is_steps(v: Any) -> bool:
+    return isinstance(v, tuple | list) and all(isinstance(x, numbers.Integral) for x in v)
+
+
 def result_arrays(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
     """Every per-episode numeric key of the task's evaluate (success, final_distance and the
     task's own, e.g. mode_left, collided) as a (B,) float array, NaN where an episode lacks it;
-    success and final_distance always (NaN when the task has none)."""
+    success and final_distance always (NaN when the task has none). A key whose values are tuples
+    of integers (e.g. grip_close_steps, the rows the grip command closed at) as a (B, L) int array,
+    each row its episode's tuple padded with -1 (L: the longest tuple; L = 0 when all are empty)."""
     keys = {"success", "final_distance"} | {k for r in results for k, v in r.items() if _is_number(v)}
-    return {k: np.array([float(r[k]) if _is_number(r.get(k)) else np.nan for r in results], dtype=float)
-            for k in sorted(keys)}
+    out = {k: np.array([float(r[k]) if _is_number(r.get(k)) else np.nan for r in results], dtype=float)
+           for k in sorted(keys)}
+    for k in sorted({k for r in results for k, v in r.items() if _is_steps(v)} - keys):
+        rows = [tuple(r.get(k, ())) for r in results]
+        padded = np.full((len(rows), max(map(len, rows), default=0)), -1, dtype=int)
+        for i, row in enumerate(rows):
+            padded[i, : len(row)] = row
+        out[k] = padded
+    return out
 
 
 def rollout_arrays(detail: TaskEvaluation, n_expert: int = 0) -> dict[str, np.ndarray]:

@@ -17,7 +17,18 @@ cells' eval.feedback, as the study "<study>-milestones-feedback-<MODE>": the fee
 models, at the cost of evaluation only. Its runs log eval.feedback = MODE. With the cells' own MODE it is the
 lever's reference arm: the same models evaluated anew at the current commit, which also records whatever
 per-episode facts the tasks have gained since. `--iterations N ...` evaluates only the checkpoints kept at
-those iterations (a final model's too)."""
+those iterations (a final model's too).
+
+`--split validation` evaluates the same models on the validation episodes instead of the headline's (eval seed +
+VALIDATION_SEED_OFFSET + training seed: experiments.evaluation.split_seed; VALIDATION_ROLLOUTS per seed and task
+unless --rollouts), final models included, as the study "<study>-milestones-validation[-feedback-<MODE>]": the
+split protocol choices are made on, never a headline table's (reports refuse it there). Its runs log
+eval.split = validation and every run of this command is tagged with its split.
+
+Besides kept checkpoints, it evaluates the models a study export carries (reports.data.export `--with-models`:
+weights alone, artifacts weights_at/<iteration>/weights.pt), once the export is imported into a store: in a fresh
+clone, `python -m reports import reports/studies/NAME`, then this command, evaluates the study's models with the
+same choices, to the same rollouts as from the original store."""
 
 from __future__ import annotations
 
@@ -31,9 +42,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from experiments.cell_run import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, setup_process
+from experiments.cell_run import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, WEIGHTS_DIR, WEIGHTS_NAME, setup_process
 from experiments.config_errors import ConfigError
+from experiments.eval_sweep_config import SPLITS, VALIDATION_ROLLOUTS
 from experiments.runtime.processes import add_device_option, add_threads_option, checked_device
+from experiments.runtime.study_names import check_study_name
 from experiments.runtime.tracking import (
     ABLATION,
     MILESTONE_ITERATION,
@@ -48,6 +61,8 @@ from experiments.runtime.tracking import (
     log_params,
     provenance_params,
     set_tags,
+    sqlite_path,
+    tracking_uri,
 )
 from stm.config import FEEDBACKS
 
@@ -66,6 +81,11 @@ class Milestone:
     seed: str
     iteration: int
     final: bool  # the source cell FINISHED at this iteration: its own evaluation is copied
+    artifact: str = ""  # the model's artifact on the source run (kept_models); "" for the kept checkpoint's
+
+    @property
+    def model_artifact(self) -> str:
+        return self.artifact or f"{KEPT_CHECKPOINT_DIR}/{self.iteration}/{CHECKPOINT_NAME}"
 
     @property
     def key(self) -> str:
@@ -82,9 +102,22 @@ def kept_iterations(client: Client, run_id: str) -> list[int]:
     return sorted(out)
 
 
+def kept_models(client: Client, run_id: str) -> dict[int, str]:
+    """The run's models by iteration: its kept checkpoints, and the weights an imported export with models brought
+    (weights_at/<iteration>/weights.pt) where no checkpoint was kept at that iteration (the same weights)."""
+    out = {}
+    for f in client.list_artifacts(run_id, WEIGHTS_DIR):
+        name = Path(f.path).name
+        if f.is_dir and name.isdigit():
+            out[int(name)] = f"{WEIGHTS_DIR}/{name}/{WEIGHTS_NAME}"
+    out.update({it: f"{KEPT_CHECKPOINT_DIR}/{it}/{CHECKPOINT_NAME}" for it in kept_iterations(client, run_id)})
+    return dict(sorted(out.items()))
+
+
 def find_milestones(client: Client, study: str, tasks: list[str] | None, variants: list[str] | None,
                     iterations: list[int] | None = None) -> tuple[list[Milestone], str]:
-    """The kept checkpoints of the study's selected cells (at the selected iterations), and the study's profile."""
+    """The kept checkpoints (and models imported with an export) of the study's selected cells (at the selected
+    iterations), and the study's profile."""
     experiment = client.get_experiment_by_name(ABLATION)
     parent = find_parent_run(client, experiment.experiment_id, study) if experiment else None
     if parent is None:
@@ -95,12 +128,14 @@ def find_milestones(client: Client, study: str, tasks: list[str] | None, variant
         if (tasks and tags.get("task") not in tasks) or (variants and tags.get("variant") not in variants):
             continue
         done = int(run.data.metrics.get("train/iterations", -1)) if run.info.status == "FINISHED" else -1
-        out += [Milestone(run.info.run_id, tags["task"], tags["variant"], tags["seed"], it, final=it == done)
-                for it in kept_iterations(client, run.info.run_id) if not iterations or it in iterations]
+        out += [Milestone(run.info.run_id, tags["task"], tags["variant"], tags["seed"], it, final=it == done,
+                          artifact=path)
+                for it, path in kept_models(client, run.info.run_id).items() if not iterations or it in iterations]
     if not out:
         at = f" at iterations {', '.join(map(str, iterations))}" if iterations else ""
-        raise MilestoneError(f"study {study!r} has no kept checkpoints (checkpoint_at/) for the selected cells{at}; "
-                             "run it with keep_checkpoints = N in its profile or --set keep_checkpoints=N")
+        raise MilestoneError(f"study {study!r} has no kept checkpoints (checkpoint_at/) or imported models "
+                             f"(weights_at/) for the selected cells{at}; run it with keep_checkpoints = N in its "
+                             "profile or --set keep_checkpoints=N")
     return sorted(out, key=lambda m: (m.task, m.variant, m.seed, m.iteration)), parent.data.tags.get("profile", "?")
 
 
@@ -110,8 +145,10 @@ def _source_config(client: Client, run_id: str, work: Path) -> dict[str, Any]:
 
 
 def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None, level: int,
-                       threads: int | None, feedback: str | None = None, device: str = "cpu") -> tuple[str, str]:
-    """Worker entry point: evaluate one kept checkpoint into its run, its rollouts on `device`; (status, error)."""
+                       threads: int | None, feedback: str | None = None, device: str = "cpu",
+                       split: str = "test") -> tuple[str, str]:
+    """Worker entry point: evaluate one kept checkpoint into its run, its rollouts on `device`, on the episodes of
+    `split`; (status, error)."""
     import numpy as np
 
     from experiments.evaluation import evaluate_model, rollout_arrays
@@ -120,16 +157,15 @@ def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None
     from stm.training.checkpoint import load_model
 
     setup_process(level, threads)
-    client = Client(uri)
+    client = Client(uri, create=False)
     client.update_run(run_id, status="RUNNING")
     try:
         with tempfile.TemporaryDirectory(prefix="acrmdn-milestone-") as tmp:
             work = Path(tmp)
             cfg = _source_config(client, m.source_run, work / "config")
-            eval_cfg = dict(cfg["eval"], rollouts=rollouts or cfg["eval"]["rollouts"],
-                            feedback=feedback or cfg["eval"]["feedback"])
-            path = client.download_artifacts(m.source_run, f"{KEPT_CHECKPOINT_DIR}/{m.iteration}/{CHECKPOINT_NAME}",
-                                             str(work / "ckpt"))
+            eval_cfg = dict(cfg["eval"], rollouts=rollouts or split_rollouts(split, cfg["eval"]["rollouts"]),
+                            feedback=feedback or cfg["eval"]["feedback"], split=split)
+            path = client.download_artifacts(m.source_run, m.model_artifact, str(work / "ckpt"))
             train = cfg["train"]
             start = time.perf_counter()
             set_tags(client, run_id, {"device": str(resolve_device(device))})
@@ -170,19 +206,34 @@ def _copy_final(client: Client, m: Milestone, run_id: str) -> None:
     client.set_terminated(run_id, "FINISHED")
 
 
-def milestones_study_name(study: str, feedback: str | None = None) -> str:
-    return f"{study}-milestones" + (f"-feedback-{feedback}" if feedback else "")
+def milestones_study_name(study: str, feedback: str | None = None, split: str = "test") -> str:
+    return (f"{study}-milestones" + ("-validation" if split == "validation" else "")
+            + (f"-feedback-{feedback}" if feedback else ""))
+
+
+def _cell_split(client: Client, m: Milestone) -> str:
+    """The split the source cell was evaluated on (its param eval.split; absent: "test")."""
+    return client.get_run(m.source_run).data.params.get("eval.split", "test")
+
+
+def split_rollouts(split: str, cell_rollouts: int) -> int:
+    """Episodes per seed and task when --rollouts is not given: the cell's for "test", VALIDATION_ROLLOUTS for
+    "validation"."""
+    return VALIDATION_ROLLOUTS if split == "validation" else int(cell_rollouts)
 
 
 def prepare(client: Client, study: str, profile: str, milestones: list[Milestone], rollouts: int | None,
-            feedback: str | None = None) -> tuple[str, list[tuple[Milestone, str]], int]:
+            feedback: str | None = None, split: str = "test") -> tuple[str, list[tuple[Milestone, str]], int]:
     """The milestones study's parent run, (milestone, run id) still to evaluate, and how many are done."""
     experiment_id = get_or_create_experiment(client, MILESTONES)
-    name = milestones_study_name(study, feedback)
+    name = milestones_study_name(study, feedback, split)
+    validation = split == "validation"
     parent_id = get_or_create_parent_run(client, experiment_id, name, {"kind": MILESTONES, "source_study": study,
-                                                                       "profile": profile})
-    log_params(client, parent_id, {"source_study": study, "rollouts": rollouts or "as the cells",
-                                   **({"feedback": feedback} if feedback else {}), **provenance_params()})
+                                                                       "profile": profile, "split": split})
+    log_params(client, parent_id, {"source_study": study, "rollouts": rollouts or ("as the cells" if not validation
+                                                                                   else VALIDATION_ROLLOUTS),
+                                   **({"feedback": feedback} if feedback else {}),
+                                   **({"split": split} if validation else {}), **provenance_params()})
     existing = {(r.data.tags.get("source_run"), r.data.tags.get("iteration")): r
                 for r in child_runs(client, experiment_id, parent_id)}
     todo, done = [], 0
@@ -193,13 +244,16 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
             continue
         if run is None:
             tags = {PARENT_TAG: parent_id, "task": m.task, "variant": m.variant, "seed": m.seed,
-                    "iteration": m.iteration, "source_run": m.source_run, "study_name": name, "role": "cell"}
+                    "iteration": m.iteration, "source_run": m.source_run, "study_name": name, "role": "cell",
+                    "split": split}
             run_id = client.create_run(experiment_id, run_name=m.key, tags={k: str(v) for k, v in tags.items()}
                                        ).info.run_id
             params = {k: v for k, v in client.get_run(m.source_run).data.params.items() if not k.startswith("claim.")}
             log_params(client, run_id, {**params, MILESTONE_ITERATION: m.iteration,
-                                        "milestone.rollouts": rollouts or "as the cell",
-                                        **({"eval.feedback": feedback} if feedback else {})})
+                                        "milestone.rollouts": rollouts or ("as the cell" if not validation
+                                                                           else VALIDATION_ROLLOUTS),
+                                        **({"eval.feedback": feedback} if feedback else {}),
+                                        **({"eval.split": split} if validation else {})})
         else:
             run_id = run.info.run_id
         todo.append((m, run_id))
@@ -208,18 +262,22 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
 
 def run_milestones(study: str, tasks: list[str] | None = None, variants: list[str] | None = None,
                    rollouts: int | None = None, workers: int = 1, uri: str | None = None,
-                   feedback: str | None = None, device: str = "cpu", iterations: list[int] | None = None
-                   ) -> dict[str, int]:
+                   feedback: str | None = None, device: str = "cpu", iterations: list[int] | None = None,
+                   split: str = "test") -> dict[str, int]:
     """Evaluate every kept checkpoint of the study not evaluated yet (feeding back `feedback` instead of the
-    cells' own: module docstring); counts by outcome."""
+    cells' own, on the episodes of `split`: module docstring); counts by outcome."""
     from experiments.runtime.processes import training_threads, worker_pool
 
     start = time.perf_counter()
+    db = sqlite_path(uri or tracking_uri())
+    if db is not None and not db.exists():  # (opening one would create an empty store)
+        raise MilestoneError(f"no MLflow store at {db} (run the ablation study first, or set MLFLOW_TRACKING_URI)")
     client = Client(uri)
     milestones, profile = find_milestones(client, study, tasks, variants, iterations)
-    if feedback:  # the final models too are evaluated anew, with another feedback than their own evaluation's
-        milestones = [dataclasses.replace(m, final=False) for m in milestones]
-    parent_id, todo, done = prepare(client, study, profile, milestones, rollouts, feedback)
+    # a final model's own evaluation is copied only where it is the one asked for: its feedback, on the same split
+    milestones = [m if not m.final or (not feedback and _cell_split(client, m) == split)
+                  else dataclasses.replace(m, final=False) for m in milestones]
+    parent_id, todo, done = prepare(client, study, profile, milestones, rollouts, feedback, split)
     counts = {"FINISHED": 0, "FAILED": 0, "skipped": done}
     level = logging.getLogger().getEffectiveLevel()
     log.info("study %r: %d kept checkpoints (%d to evaluate, %d done)", study, len(milestones), len(todo), done)
@@ -230,8 +288,8 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
             counts["FINISHED"] += 1
     with worker_pool(max(1, workers)) as pool:
         threads = training_threads()
-        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, threads, feedback, device))
-                   for m, r in evaluate]
+        futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, threads, feedback, device,
+                                   split)) for m, r in evaluate]
         for m, fut in futures:
             status, error = fut.result()
             counts[status] += 1
@@ -255,6 +313,10 @@ def add_parser(sub) -> None:
     p.add_argument("--feedback", choices=FEEDBACKS, default=None,
                    help="evaluate feeding back this instead of the cells' eval.feedback, final models included, "
                         "as the study <study>-milestones-feedback-<MODE>")
+    p.add_argument("--split", choices=SPLITS, default="test",
+                   help="the episodes: test (default: the headline's) or validation (disjoint ones, where protocol "
+                        f"choices are made; {VALIDATION_ROLLOUTS} per seed and task unless --rollouts; final models "
+                        "included), as the study <study>-milestones-validation[-feedback-<MODE>]")
     p.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -264,12 +326,14 @@ def main(args) -> int:
         print(f"error: --rollouts must be >= 1, got {args.rollouts}", file=sys.stderr)
         return 2
     try:
+        check_study_name(args.study, "--study")
+        check_study_name(milestones_study_name(args.study, args.feedback, args.split), "the milestones study's name")
         device = checked_device(args.device) or "cpu"
         counts = run_milestones(args.study, args.tasks, args.variants, args.rollouts, args.workers,
-                                feedback=args.feedback, device=device, iterations=args.iterations)
+                                feedback=args.feedback, device=device, iterations=args.iterations, split=args.split)
     except (MilestoneError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"{milestones_study_name(args.study, args.feedback)!r}: {counts['FINISHED']} evaluated, "
+    print(f"{milestones_study_name(args.study, args.feedback, args.split)!r}: {counts['FINISHED']} evaluated, "
           f"{counts['skipped']} already done, {counts['FAILED']} failed")
     return 1 if counts["FAILED"] else 0

@@ -1,10 +1,11 @@
 """Success statistics shared by experiments (study summary, per-run metrics) and reports (tables and comparisons):
-the Wilson interval of pooled rollouts, the seed-level t-interval, the success table, and paired and group
-comparisons of two variants.
+the Wilson interval of pooled rollouts, the seed-level interval of a success rate (rate_interval), the success
+table, and paired and group comparisons of two variants.
 
 Why two intervals: the rollouts of one training seed share that seed's model, so they are not independent trials
 of the variant. The Wilson interval pools every rollout as if they were; the seed-level interval treats each
-seed's rate as one draw of the variant's rate (seed_interval says why a t-interval)."""
+seed's rate as one draw of the variant's rate (rate_interval says how it keeps its coverage with 3-5 seeds, and at
+rates near 0 and 100 %, where a t-interval over the seeds' rates alone collapses)."""
 
 from __future__ import annotations
 
@@ -22,12 +23,13 @@ MIN_SEEDS_FOR_INTERVAL = 2  # one seed says nothing about the spread between see
 SEED_COLUMN = "seed-level 95%"
 WILSON_COLUMN = "Wilson 95% (rollouts independent)"
 SUCCESS_NOTE = ("success: mean over seeds of each seed's success rate; per seed: each training seed's rate; "
-                f"{SEED_COLUMN}: t-interval over the seeds' rates (t with seeds - 1 degrees of freedom, clipped to "
-                "0-100%; needs >= 2 seeds), the interval to read: it keeps its coverage with 3-5 seeds, widens "
-                "with the spread between seeds and collapses when every seed has the same rate; Wilson: 95% "
-                "interval over all rollouts pooled, which assumes independent rollouts and ignores the spread "
-                "between seeds; rollouts: evaluation episodes pooled over seeds; seeds: training seeds with a "
-                "finished run.")
+                f"{SEED_COLUMN}: the interval to read (needs >= 2 seeds): the wider of a t-interval over the seeds' "
+                "rates, a t-interval over their logits (each rate shrunk towards 50 % by two pseudo-successes and "
+                "two pseudo-failures) and a Clopper-Pearson interval on the episodes pooled at their effective "
+                "number (the spread between seeds counted); it keeps its coverage with 3-5 seeds, widens with the "
+                "spread between seeds and never shrinks to a point, at 0 % or 100 % either; Wilson: 95% interval "
+                "over all rollouts pooled, which assumes independent rollouts and ignores the spread between seeds; "
+                "rollouts: evaluation episodes pooled over seeds; seeds: training seeds with a finished run.")
 
 
 def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
@@ -44,16 +46,10 @@ def seed_interval(values, confidence: float = CONFIDENCE, bounds: tuple[float, f
     """Student-t interval of the mean of `values` (the last axis: one value per seed), clipped to `bounds`;
     NaN where fewer than MIN_SEEDS_FOR_INTERVAL values. Vectorised: values of shape (..., K) give two arrays.
 
-    Why a t-interval over the seeds' rates: a seed is one trained model, so the variant's rate varies between
-    seeds beyond the binomial noise of its episodes, and with 3-5 seeds that spread is known only roughly. The
-    t quantile with K - 1 degrees of freedom pays for that, so the interval holds its coverage with 3 seeds
-    (tests/test_reports.py simulates it around a rate of 60 %: 94-95 % for a between-seed spread of 0, 8 and
-    15 points, 3 and 5 seeds, 34 episodes each; near a rate of 80 % with a 15-point spread, where the seeds'
-    rates are skewed, about 92 %). A seed's rate averages 34 outcomes, near enough to normal for the t. A cluster
-    bootstrap over 3 seeds draws from only 10 seed combinations and under-covers (about 85 % at a 15-point spread);
-    a beta-binomial or random-effects model would need its between-seed variance estimated from the same
-    3 seeds, with no better coverage for the added machinery. Costs: with 3 seeds the interval is wide (t = 4.3),
-    and when every seed has the same rate it collapses to that rate (read the pooled Wilson interval then)."""
+    The plain t-interval over seeds, for values that are not success rates (an entropy, a share of repeats) and as
+    a part of rate_interval. A seed is one trained model, so a variant's value varies between seeds, and with 3-5
+    seeds that spread is known only roughly: the t quantile with K - 1 degrees of freedom pays for it. It collapses
+    when every seed has the same value: for success rates use rate_interval, which does not."""
     from scipy.stats import t as student_t  # here: scipy.stats costs ~0.5 s of import in every process
 
     x = np.asarray(values, dtype=float)
@@ -65,6 +61,121 @@ def seed_interval(values, confidence: float = CONFIDENCE, bounds: tuple[float, f
     mean = x.mean(axis=-1)
     low, high = np.clip(mean - half, *bounds), np.clip(mean + half, *bounds)
     return (float(low), float(high)) if x.ndim == 1 else (low, high)
+
+
+def clopper_pearson(successes, n, confidence: float = CONFIDENCE):
+    """Clopper-Pearson (beta quantile) interval of a binomial proportion, vectorised; `successes` and `n` may be
+    fractional (an effective number of episodes): the beta quantiles take any positive shapes."""
+    from scipy.stats import beta
+
+    x, n = np.broadcast_arrays(np.asarray(successes, dtype=float), np.asarray(n, dtype=float))
+    tail = (1 - confidence) / 2
+    tiny = np.finfo(float).tiny
+    with np.errstate(invalid="ignore"):
+        low = np.where(x > 0, beta.ppf(tail, np.maximum(x, tiny), np.maximum(n - x + 1, tiny)), 0.0)
+        high = np.where(x < n, beta.ppf(1 - tail, x + 1, np.maximum(n - x, tiny)), 1.0)
+    return low, high
+
+
+def rate_interval(rates, episodes, confidence: float = CONFIDENCE):
+    """The seed-level interval of a variant's success rate (the mean over seeds of each seed's rate) from the seeds'
+    rates (the last axis: one per seed) and each seed's number of episodes (broadcast against `rates`); NaN with
+    fewer than MIN_SEEDS_FOR_INTERVAL seeds. Vectorised as seed_interval.
+
+    It is the union (the wider ends) of three 95 % intervals, each right where the others fail:
+    - the t-interval over the seeds' rates (seed_interval): the spread between seeds as the seeds show it;
+    - the t-interval over the seeds' logits, each rate shrunk by z^2/2 pseudo-successes and z^2/2 pseudo-failures
+      (Agresti-Coull's "add two and two", z = 1.96), mapped back: near 0 and 100 % the seeds' rates are skewed
+      towards the middle (a few good seeds pull the mean of a low rate up), and on the logit scale that skew is
+      gone, so this interval reaches further towards 50 % than away from it;
+    - a Clopper-Pearson interval on the mean rate at the effective number of episodes, the pooled episodes divided
+      by the design effect the seeds show (their rates' variance over the binomial variance of one seed's rate,
+      at least 1): it never has zero width, so seeds that agree exactly (all at 0 %, all at 100 %) still get an
+      interval as wide as their episodes allow.
+    Coverage, simulated (tests/test_reports.py: seed rates logit-normal around the true rate, the random-intercept
+    model of clustered binary outcomes, their spread named by its standard deviation at a 50 % rate, 0, 10 and 25
+    points, shrinking towards the edges as a rate's spread must: 25 points around a 1 % rate cannot exist; 3 and 5
+    seeds; 34 episodes each): at least 93 % at true rates of 1, 2, 5, 50, 80, 95, 98 and 99 %, and so on a grid of
+    rates every 1-5 points (about 94 % at its worst, 3 seeds 25 points apart around 65 %), where the t-interval over
+    the rates alone covers 52-96 % (it collapses when the seeds agree). Limits: seed rates drawn from a beta
+    distribution are covered at least 93 % at every rate up to a 15-point spread; at 25 points the beta is J-shaped
+    below about 20 % and above 80 % (most seeds at the edge, a rare one far from it), and coverage there falls, to
+    about 76 % at 6 % with 3 seeds: seeds that all sit at the edge cannot show a tail they did not draw. Costs: with
+    3 seeds the interval is wide (t = 4.3), and the logit part makes it asymmetric near the edges."""
+    from scipy.special import expit, logit
+    from scipy.stats import norm
+
+    r = np.asarray(rates, dtype=float)
+    n = np.broadcast_to(np.asarray(episodes, dtype=float), r.shape)
+    k = r.shape[-1]
+    if k < MIN_SEEDS_FOR_INTERVAL:
+        nan = np.full(r.shape[:-1], np.nan)
+        return (math.nan, math.nan) if r.ndim == 1 else (nan, nan)
+    t_low, t_high = seed_interval(r, confidence)
+    pseudo = norm.ppf(0.5 + confidence / 2) ** 2 / 2
+    logit_low, logit_high = seed_interval(logit((r * n + pseudo) / (n + 2 * pseudo)), confidence,
+                                          bounds=(-np.inf, np.inf))
+    mean = r.mean(axis=-1)
+    per_episode = np.mean(1.0 / n, axis=-1)  # one seed's binomial variance is mean (1 - mean) * 1/n
+    binomial = mean * (1 - mean) * per_episode
+    with np.errstate(divide="ignore", invalid="ignore"):
+        design = np.where(binomial > 0, np.maximum(1.0, r.var(axis=-1, ddof=1) / binomial), 1.0)
+    n_eff = k / (per_episode * design)
+    cp_low, cp_high = clopper_pearson(mean * n_eff, n_eff, confidence)
+    low = np.clip(np.minimum.reduce([t_low, expit(logit_low), cp_low]), 0.0, 1.0)
+    high = np.clip(np.maximum.reduce([t_high, expit(logit_high), cp_high]), 0.0, 1.0)
+    return (float(low), float(high)) if r.ndim == 1 else (low, high)
+
+
+def difference_interval(a, episodes_a, b, episodes_b, confidence: float = CONFIDENCE, correlation=0.0):
+    """An interval of mean(a) - mean(b), two variants' rates over seeds (the last axis; each seed's episodes
+    broadcast against its rates), built from the two rate_intervals (Zou and Donner's MOVER, the method behind
+    Newcombe's interval for a difference of two proportions): the difference's lower end lies as far below it as
+    A's interval reaches down and B's up, combined in quadrature less twice `correlation` (of the two means)
+    times their product, and likewise for its upper end. Independent sides (correlation 0): never a point. NaN
+    where a side has fewer than MIN_SEEDS_FOR_INTERVAL seeds. Vectorised as seed_interval."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    la, ha = rate_interval(a, episodes_a, confidence)
+    lb, hb = rate_interval(b, episodes_b, confidence)
+    pa, pb = a.mean(axis=-1), b.mean(axis=-1)
+    d = pa - pb
+
+    def reach(x, y):
+        return np.sqrt(np.maximum(x ** 2 + y ** 2 - 2 * correlation * x * y, 0.0))
+
+    low = np.maximum(-1.0, d - reach(pa - la, hb - pb))
+    high = np.minimum(1.0, d + reach(ha - pa, pb - lb))
+    return (float(low), float(high)) if a.ndim == 1 and b.ndim == 1 else (low, high)
+
+
+def seed_correlation(a, b):
+    """The correlation of two variants' rates over their paired seeds (the last axis), as the seeds show it (Pearson,
+    taken between 0 and 1: a negative one would widen the interval past independence); 0 where a side's rates do
+    not vary or every seed differs by the same, which shows nothing of how the two move together (the t-interval
+    over the differences is then a point, and independence keeps the paired interval from being one)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    da, db = a - a.mean(axis=-1, keepdims=True), b - b.mean(axis=-1, keepdims=True)
+    scale = np.sqrt((da ** 2).sum(axis=-1) * (db ** 2).sum(axis=-1))
+    same_difference = np.ptp(a - b, axis=-1) <= 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where((scale > 0) & ~same_difference, (da * db).sum(axis=-1) / scale, 0.0)
+    return np.clip(r, 0.0, 1.0)
+
+
+def paired_interval(a, b, episodes_a, episodes_b, confidence: float = CONFIDENCE):
+    """The seed-level interval of A - B for rates measured seed by seed on the same episodes (the last axis: the
+    paired seeds): the t-interval over the per-seed differences (seed_interval, clipped to +-1), widened to
+    difference_interval at the two rates' seed_correlation where that reaches further. Mid-range the t-interval
+    over the differences rules (the pairing's gain kept: seeds whose rates move together give a high correlation);
+    near 0 and 100 %, where the differences are few distinct counts and the t-interval under-covers or shrinks to
+    a point (every seed differing by the same, e.g. both variants at 0 %), the rate_intervals' reach takes over.
+    Simulated (tests/test_reports.py): at least 93 % coverage from 1 % to 99 %, episodes shared or not, 3 and 5
+    seeds, spreads 0 and 25 points; never a point. Vectorised."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    t_low, t_high = seed_interval(a - b, confidence, bounds=(-1.0, 1.0))
+    d_low, d_high = difference_interval(a, episodes_a, b, episodes_b, confidence, seed_correlation(a, b))
+    low, high = np.fmin(t_low, d_low), np.fmax(t_high, d_high)  # fmin/fmax: a NaN part leaves the other
+    return (float(low), float(high)) if np.ndim(low) == 0 else (low, high)
 
 
 # ------------------------------------------------------------------------------ comparing two variants
@@ -106,13 +217,19 @@ def permutation_p(a: Sequence[float], b: Sequence[float]) -> float:
     return float(np.mean(diffs >= observed - TIE))
 
 
-def paired_comparison(a: Mapping[int, float], b: Mapping[int, float]) -> dict:
+def paired_comparison(a: Mapping[int, float], b: Mapping[int, float], episodes_a: Mapping[int, float] | None = None,
+                      episodes_b: Mapping[int, float] | None = None) -> dict:
     """A - B over the seeds both have, each seed's two rates measured on the same episodes: the mean of the
-    per-seed differences, its seed-level t-interval (seed_interval on the differences, clipped to +-1) and the
-    exact sign-flip p (sign_flip_p); `n` counts the paired seeds."""
+    per-seed differences, its seed-level interval and the exact sign-flip p (sign_flip_p); `n` counts the paired
+    seeds. The interval: with the seeds' episode counts (success rates) paired_interval, else the t-interval over
+    the per-seed differences (seed_interval on the differences, clipped to +-1: for values that are no rates)."""
     seeds = sorted(set(a) & set(b))
     d = np.array([a[s] - b[s] for s in seeds], dtype=float)
-    low, high = seed_interval(d, bounds=(-1.0, 1.0))
+    if episodes_a is not None and episodes_b is not None and d.size:
+        low, high = paired_interval([a[s] for s in seeds], [b[s] for s in seeds], [episodes_a[s] for s in seeds],
+                                    [episodes_b[s] for s in seeds])
+    else:
+        low, high = seed_interval(d, bounds=(-1.0, 1.0))
     return {"test": "paired", "n": len(seeds), "difference": float(d.mean()) if d.size else math.nan,
             "low": low, "high": high, "p": sign_flip_p(d)}
 
@@ -147,7 +264,7 @@ def run_success_metrics(successes: list[float]) -> dict[str, float]:
 def success_over_seeds(per_seed: Mapping[int, tuple[float, float]]) -> dict:
     """One (variant, task) over its seeds, from each seed's (success rate, rollouts): the mean over seeds, the seeds'
     rates, the pooled successes/rollouts with their Wilson interval (ci_*) and the seed-level interval
-    (seed_*; seed_interval)."""
+    (seed_*; rate_interval)."""
     logged = {int(s): (float(r), int(n)) for s, (r, n) in sorted(per_seed.items())
               if not (pd.isna(r) or pd.isna(n)) and int(n) > 0}
     counts = {s: (int(round(r * n)), n) for s, (r, n) in logged.items()}
@@ -156,7 +273,7 @@ def success_over_seeds(per_seed: Mapping[int, tuple[float, float]]) -> dict:
     rates = {s: r for s, (r, _) in logged.items()}
     low, high = wilson_interval(k, n)
     vals = np.array(list(rates.values()), dtype=float)
-    slow, shigh = seed_interval(vals)
+    slow, shigh = rate_interval(vals, [m for _, m in logged.values()])
     return {"mean": float(vals.mean()) if vals.size else math.nan,
             "std": float(vals.std()) if vals.size else math.nan,
             "seeds": len(counts), "seed_rates": rates, "successes": k, "n": n,

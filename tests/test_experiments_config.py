@@ -44,6 +44,27 @@ def test_overrides_apply_and_rename_the_study():
     assert load_profile("smoke", seeds=3, workers=2).resolved_study_name() == "smoke"
 
 
+def test_eval_split_stack_restart_and_success_are_options_off_the_hashes_at_their_defaults():
+    """eval.split, eval.stack_restart and eval.success: at their defaults ("test", "place_pose", "strict") absent
+    from the cells' and the study's hashes (earlier studies keep theirs: test_cell_keys_and_hashes_match_the_recorded_
+    ones); otherwise another study, one on the validation episodes named so."""
+    base = load_profile("smoke")
+    assert (base.eval.split, base.eval.stack_restart, base.eval.success) == ("test", "place_pose", "strict")
+    assert not {"split", "stack_restart", "success"} & set(build_cells(base)[0].resolved["eval"])
+    assert load_profile("smoke", ["eval.success=placed"]).study_hash() != base.study_hash()
+    validation = load_profile("smoke", ["eval.split=validation"])
+    assert validation.resolved_study_name().startswith("smoke-") and validation.resolved_study_name().endswith(
+        "-validation") and validation.study_hash() != base.study_hash()
+    assert build_cells(validation)[0].resolved["eval"]["split"] == "validation"
+    start = load_profile("smoke", ["eval.stack_restart=start"])
+    assert build_cells(start)[0].resolved["eval"]["stack_restart"] == "start"
+    assert not start.resolved_study_name().endswith("-validation") and start.study_hash() != base.study_hash()
+    for override, allowed in (("eval.split=train", "validation"), ("eval.stack_restart=home", "place_pose"),
+                              ("eval.success=loose", "placed")):
+        with pytest.raises(ConfigError, match=allowed):
+            load_profile("smoke", [override])
+
+
 def test_parse_override_reads_toml_values():
     assert parse_override("train.iters=20") == (["train", "iters"], 20)
     assert parse_override("train.lr=1e-4") == (["train", "lr"], 1e-4)

@@ -80,16 +80,22 @@ def test_success_vs_iterations_figure_draws_each_variant(kept_store, tmp_path):
     assert (np.abs(pixels.astype(int) - [31, 119, 180]).sum(axis=1) < 12).sum() > 50
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--study", "nope"], "no ablation study named 'nope'"),
-    (["--study", "kept", "--rollouts", "0"], "--rollouts must be >= 1"),
+@pytest.mark.parametrize(("args", "message", "store"), [
+    (["--study", "nope"], "no ablation study named 'nope'", True),
+    (["--study", "nope"], "no MLflow store at", False),  # and none is made: an empty one would hide the mistake
+    (["--study", "kept", "--rollouts", "0"], "--rollouts must be >= 1", False),
 ])
 @pytest.mark.slow
-def test_bad_selection_is_one_line_and_exit_2(tmp_path, args, message):
+def test_bad_selection_is_one_line_and_exit_2(tmp_path, args, message, store):
+    from experiments.runtime.tracking import Client
+
+    if store:
+        Client(f"sqlite:///{tmp_path / 'mlflow.db'}")  # a store without the study
     proc = run_cli(["milestones", *args], tmp_path)
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1 and message in lines[0], proc.stderr[-2000:]
+    assert (tmp_path / "mlflow.db").exists() == store
 
 
 @pytest.mark.slow
@@ -105,6 +111,37 @@ def test_iterations_select_the_kept_checkpoints(kept_store):
     assert all("copied" not in r.data.tags for r in runs)  # evaluated anew, not copied
     none = run_cli(["milestones", "--study", "kept", "--iterations", "7"], kept_store)
     assert none.returncode == 2 and "at iterations 7" in none.stderr
+
+
+@pytest.mark.slow
+def test_validation_split_evaluates_its_own_episodes_and_stays_out_of_headline_tables(kept_store, tmp_path):
+    """--split validation: the kept models (final ones too: their own evaluation was on the test episodes)
+    evaluated on the validation episodes (eval seed + 10,000 + seed, 34 per seed and task) as their own study,
+    each run tagged with its split; a headline table refuses that study, a comparison quotes it labelled."""
+    proc = run_cli(["milestones", "--study", "kept", "--split", "validation", "--iterations", "10"], kept_store)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "'kept-milestones-validation': 2 evaluated, 0 already done, 0 failed" in proc.stdout
+    client = MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("milestones")
+    runs = client.search_runs([exp.experiment_id],
+                              "tags.study_name = 'kept-milestones-validation' and tags.role = 'cell'")
+    assert len(runs) == 2
+    for run in runs:
+        assert run.data.tags["split"] == "validation" and run.data.params["eval.split"] == "validation"
+        assert "copied" not in run.data.tags and run.data.metrics["reacher/n_rollouts"] == 34
+        assert run.data.metrics["reacher/episode_seed"] == 20_000 + int(run.data.tags["seed"])
+
+    from reports.data.store import Store, StoreError
+    from reports.results.writer import write_results
+
+    store = Store(f"sqlite:///{kept_store / 'mlflow.db'}")
+    template = tmp_path / "t.md"
+    template.write_text('{{ success_table(study="kept-milestones-validation") }}\n')
+    with pytest.raises(StoreError, match="validation episodes"):
+        write_results(store, template, tmp_path / "R.md", tmp_path / "fig")
+    template.write_text('{{ rate("reacher", "kept-milestones-validation/lstm") }}\n')
+    text = write_results(store, template, tmp_path / "R.md", tmp_path / "fig").read_text()
+    assert re.search(r"\d+ % \(seed-level 95 % interval .*; 2 seeds; validation episodes\)", text), text
 
 
 @pytest.mark.slow

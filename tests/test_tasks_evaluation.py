@@ -31,6 +31,52 @@ def test_episode_seed_and_feedback_rules():
     assert rollout_feedback("component_mean", None) == "component_mean"
 
 
+def test_per_episode_step_lists_become_padded_arrays_and_stay_out_of_the_means():
+    from experiments.evaluation import result_arrays, task_metrics
+
+    results = [{"success": 1.0, "placed": 1.0, "grip_close_steps": (40,)},
+               {"success": 0.0, "placed": 1.0, "grip_close_steps": (40, 169)},
+               {"success": 0.0, "placed": 0.0, "grip_close_steps": ()}]
+    arrays = result_arrays(results)
+    assert arrays["grip_close_steps"].dtype.kind == "i"
+    assert arrays["grip_close_steps"].tolist() == [[40, -1], [40, 169], [-1, -1]]
+    assert arrays["placed"].tolist() == [1.0, 1.0, 0.0] and arrays["success"].tolist() == [1.0, 0.0, 0.0]
+    assert result_arrays([{"success": 1.0, "grip_close_steps": ()}])["grip_close_steps"].shape == (1, 0)
+    metrics = task_metrics(get_task("pick-place"), results, [])
+    assert metrics["pick-place/placed_mean"] == pytest.approx(2 / 3)
+    assert metrics["pick-place/success_rate"] == pytest.approx(1 / 3)
+    assert not any("grip_close_steps" in k for k in metrics)
+
+
+def _first_episode(task, seed: int) -> tuple[bytes, bytes]:
+    ep = task.episodes(1, seed)[0]
+    return np.asarray(ep.q0).tobytes(), np.asarray(ep.psi).tobytes()
+
+
+def test_validation_episodes_never_are_test_episodes():
+    """eval.split = validation draws every training seed's episodes from eval seed + 10,000 + seed: for seeds 0..99
+    none of them is a test episode seed, and every task with random episodes draws other episodes there (a task
+    whose episodes do not depend on the seed, the circle's, has no episodes to keep apart)."""
+    from envs.tasks import task_names
+    from experiments.evaluation import split_seed
+
+    validation = {**EVAL, "split": "validation"}
+    assert split_seed(EVAL) == 10_000 and split_seed(validation) == 20_000
+    test_seeds = {episode_seed(split_seed(EVAL), s) for s in range(100)}
+    validation_seeds = [episode_seed(split_seed(validation), s) for s in range(100)]
+    assert not test_seeds & set(validation_seeds) and len(set(validation_seeds)) == 100
+    for name in task_names():
+        task = get_task(name)
+        test = {_first_episode(task, s) for s in test_seeds}
+        if len(test) == 1:
+            continue  # deterministic episodes (one per radius)
+        assert not test & {_first_episode(task, s) for s in validation_seeds}, name
+    with pytest.raises(ValueError, match="eval.split: 'train' is not allowed"):
+        split_seed({**EVAL, "split": "train"})
+    metrics, (d,) = evaluate_model(_model("reacher"), ["reacher"], validation, seed=3, timings=False)
+    assert d.episode_seed == 20_003 and metrics["reacher/episode_seed"] == 20_003
+
+
 def test_timings_take_a_bounded_share_of_the_episodes():
     # (one at a time, batched IK): at most a tenth / a third of them, 3 / 10 from 30 episodes on
     assert [_timed_counts(n) for n in (1, 4, 12, 30, 40, 100)] == [(1, 1), (1, 2), (2, 4), (3, 10), (3, 10),

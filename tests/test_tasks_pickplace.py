@@ -91,6 +91,7 @@ def test_expert_demo_succeeds_when_replayed_and_evaluation_is_repeatable(task, d
     q, grip = _demo(demos, 0)
     r = task.evaluate(q, grip, _episode_of(demos, 0))
     assert r["success"] == 1.0 and r["final_distance"] < 0.005 and r["grip_closes"] == 1.0
+    assert r["placed"] == r["success_strict"] == 1.0 and r["grip_close_steps"] == (int(np.argmax(grip > 0.5)),)
     task.evaluate(*_demo(demos, 1), _episode_of(demos, 1))  # whatever ran before ...
     assert task.evaluate(q, grip, _episode_of(demos, 0)) == r  # ... the same rollout gives the same numbers
 
@@ -117,15 +118,31 @@ def test_holding_on_or_staying_at_the_block_fails(task, demos):
     t_open = int(np.flatnonzero(np.diff(grip) == -1)[0]) + 1
     never_released = task.evaluate(q, np.where(np.arange(len(grip)) >= t_open, 1.0, grip), ep)
     assert never_released["success"] == 0.0 and never_released["grip_closed"] == 1.0
-    assert never_released["grip_closes"] == 1.0
+    assert never_released["grip_closes"] == 1.0 and never_released["placed"] == 0.0  # carried off in the hand
     # placed and retreated, then the command shut again in the last steps: it counts a second close
     shut_again = task.evaluate(q, np.where(np.arange(len(grip)) >= len(grip) - 2, 1.0, grip), ep)
     assert shut_again["success"] == 0.0 and shut_again["grip_closed"] == 1.0 and shut_again["grip_closes"] == 2.0
     assert shut_again["final_distance"] < 0.01  # the block itself stands placed
+    # judged on the block it is placed; the strict criterion (success) also wants the last command open
+    assert shut_again["placed"] == 1.0 and shut_again["success_strict"] == shut_again["success"] == 0.0
+    t_close = int(np.flatnonzero(np.diff(grip) == 1)[0]) + 1
+    assert shut_again["grip_close_steps"] == (t_close, len(grip) - 2)
+    # an evaluation whose criterion is the block alone (eval.success = "placed") counts it a success
+    judged_on_block = PickPlace.for_evaluation({}, {"success": "placed"})
+    by_block = judged_on_block.evaluate(q, np.where(np.arange(len(grip)) >= len(grip) - 2, 1.0, grip), ep)
+    assert by_block["success"] == by_block["placed"] == 1.0 and by_block["success_strict"] == 0.0
     # opened but never retreated: the fingers still straddle the block
     stayed = task.evaluate(pad_rows(q[: t_open + 3], len(q)), grip, ep)
     assert stayed["success"] == 0.0 and stayed["tip_to_block"] < 0.03 and stayed["final_distance"] < 0.005
-    assert stayed["grip_closed"] == 0.0 and stayed["tilt"] < 0.2
+    assert stayed["grip_closed"] == 0.0 and stayed["tilt"] < 0.2 and stayed["placed"] == 0.0  # the tip too close
+
+
+def test_the_success_criterion_is_an_evaluation_option():
+    assert PickPlace().success == "strict" and PickPlace.for_evaluation({}, {}).success == "strict"
+    assert type(get_task("pick-place-changing-goal")).for_evaluation({}, {"success": "placed"}).success == "placed"
+    assert PickPlace(success="placed").config() == PickPlace().config()  # the dataset stays as it is
+    with pytest.raises(ValueError, match="success must be one of strict, placed, got 'loose'"):
+        PickPlace.for_evaluation({}, {"success": "loose"})
 
 
 def test_bad_input_is_rejected(task):

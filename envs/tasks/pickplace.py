@@ -29,14 +29,16 @@ hand, to placing at the new goal (judged there in the physics replay).
 Success (physics, after the trajectory and 1 s of settling with the last command held):
 the block's bottom is within 2 cm (xy) and 1 cm (z) of the goal, upright (tilt < 0.2
 rad), the last grip command is open, no finger touches it and the tip is at least 6 cm
-from its centre. final_distance = |block bottom - goal| (m).
+from its centre. final_distance = |block bottom - goal| (m). Each episode records `placed` (the
+block judged alone, whatever the last grip command) and `success_strict` (all of the above);
+`success` holds the one eval.success names (SUCCESS_CRITERIA; "strict" by default, as before).
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
@@ -80,6 +82,7 @@ LEVELS = (0, 1, 2)
 MIN_STEPS, MAX_STEPS = 166, 170
 SETTLE_SECONDS = 1.0
 XY_TOL, Z_TOL, MAX_TILT, AWAY = 0.02, 0.01, 0.2, 0.06
+SUCCESS_CRITERIA = ("strict", "placed")  # what `success` holds: success_strict or placed (run_pick_place)
 
 
 def _box_lo_hi(box) -> tuple[np.ndarray, np.ndarray]:
@@ -109,9 +112,13 @@ def placed_ok(world: BlockWorld, block: int, goal: np.ndarray) -> tuple[bool, di
                 "z_error": float(err[2]), "tip_to_block": tip_away, "tilt": st.tilt, "touching": float(touching)}
 
 
-def run_pick_place(q: np.ndarray, grip: np.ndarray, goal: np.ndarray, level: int) -> dict[str, float]:
+def run_pick_place(q: np.ndarray, grip: np.ndarray, goal: np.ndarray, level: int,
+                   success: str = "strict") -> dict[str, Any]:
     """Play a pick-place trajectory in physics: L support blocks at the goal xy, one block
-    at the pick position; then settle and check the placed block."""
+    at the pick position; then settle and check the placed block. `placed`: the block at the
+    goal within the tolerances, upright, untouched and the tip away (placed_ok, after the
+    settling); `success_strict`: placed and the last grip command open; `success`: the one of
+    them the criterion `success` (SUCCESS_CRITERIA) names."""
     with fresh_world() as world:
         for lv in range(level):
             world.spawn(goal[:2], lv)
@@ -121,10 +128,12 @@ def run_pick_place(q: np.ndarray, grip: np.ndarray, goal: np.ndarray, level: int
         ok, metrics = placed_ok(world, block, goal)
     closed = np.asarray(grip) >= 0.5
     grip_closed = float(closed[-1])  # the last grip command: a place ends with the gripper open
-    # a demonstration closes once (the grasp): more closes mean the command shut again after opening
-    grip_closes = float(np.count_nonzero(closed[1:] & ~closed[:-1]) + closed[0])
-    return {"success": float(ok and not grip_closed), **metrics, "grip_closed": grip_closed,
-            "grip_closes": grip_closes}
+    strict = float(ok and not grip_closed)
+    # the rows the command closed at; a demonstration closes once (the grasp): more mean it shut again after opening
+    steps = tuple(int(t) for t in np.flatnonzero(np.r_[closed[0], closed[1:] & ~closed[:-1]]))
+    return {"success": strict if success == "strict" else float(ok), "success_strict": strict, "placed": float(ok),
+            **metrics, "grip_closed": grip_closed, "grip_closes": float(len(steps)), "grip_close_steps": steps}
+
 
 
 def retreat_poses(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -175,9 +184,10 @@ class PickPlace(Task):
 
     def __init__(self, n_demos: int = 150, min_steps: int = MIN_STEPS, max_steps: int = MAX_STEPS,
                  retreat_starts: float = RETREAT_STARTS, goal_switches: float = 0.0,
-                 start_joint_range: float = START_JOINT_RANGE):
+                 start_joint_range: float = START_JOINT_RANGE, success: str = "strict"):
         """start_joint_range: half-width (rad) of the uniform start range around NEUTRAL_Q (the
-        start-range lever; the tip must still start in START_BOX, so wide ranges are filtered)."""
+        start-range lever; the tip must still start in START_BOX, so wide ranges are filtered).
+        success: what an episode's `success` holds (SUCCESS_CRITERIA; evaluation only, out of config())."""
         if n_demos < 1:
             raise ValueError(f"n_demos must be >= 1, got {n_demos}")
         if not FIXED_STEPS + 10 <= min_steps <= max_steps:
@@ -187,9 +197,17 @@ class PickPlace(Task):
                 raise ValueError(f"{name} must be a fraction in [0, 1], got {value}")
         if not 0.0 <= start_joint_range <= np.pi:
             raise ValueError(f"start_joint_range must be in [0, pi] rad, got {start_joint_range}")
+        if success not in SUCCESS_CRITERIA:
+            raise ValueError(f"success must be one of {', '.join(SUCCESS_CRITERIA)}, got {success!r}")
+        self.success = success
         self.start_joint_range = float(start_joint_range)
         self.n_demos, self.min_steps, self.max_steps = n_demos, min_steps, max_steps
         self.retreat_starts, self.goal_switches = float(retreat_starts), float(goal_switches)
+
+    @classmethod
+    def eval_options(cls, eval_cfg: Mapping[str, Any]) -> dict[str, Any]:
+        """success = the eval section's success criterion (absent: "strict"; the constructor checks it)."""
+        return {"success": eval_cfg.get("success", "strict")}
 
     def config(self) -> dict[str, Any]:
         return {
@@ -279,7 +297,7 @@ class PickPlace(Task):
                 if not ok_b:
                     rejections["ik"] += 1
                     continue
-                if run_pick_place(path, grip, psi[-1], level_of(psi[-1]))["success"] < 1.0:
+                if run_pick_place(path, grip, psi[-1], level_of(psi[-1]))["success_strict"] < 1.0:
                     rejections["physics"] += 1
                     continue
                 accepted.append((path, grip, psi))
@@ -338,14 +356,16 @@ class PickPlace(Task):
         place = np.asarray(episode.psi[-1], float) + [0.0, 0.0, GRASP_HEIGHT]
         return float(np.linalg.norm(tip - place, axis=-1).min())
 
-    def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
-        """Metrics: success, final_distance (|block bottom - goal|, m), xy_error, z_error (m),
-        tip_to_block (m), tilt (rad), touching, grip_closed (the last grip command; 0 or 1) and grip_closes (how
-        often the command went from open to closed; a demonstration's once). The goal is info["goal"], else the
-        episode's last psi row."""
+    def evaluate(self, q, grip, episode: Episode) -> dict[str, Any]:
+        """Metrics: success (success_strict or placed, as self.success names), success_strict (placed and the
+        last grip command open), placed (the block judged alone: at the goal, upright, untouched, the tip away,
+        after settling), final_distance (|block bottom - goal|, m), xy_error, z_error (m), tip_to_block (m), tilt
+        (rad), touching, grip_closed (the last grip command; 0 or 1), grip_closes (how often the command went from
+        open to closed; a demonstration's once) and grip_close_steps (the rows it closed at, a tuple). The goal is
+        info["goal"], else the episode's last psi row."""
         q, grip = check_grip_trajectory(q, grip)
         goal = np.asarray(episode.info.get("goal", episode.psi[-1]), float)
-        return run_pick_place(q, grip, goal, int(episode.info.get("level", level_of(goal))))
+        return run_pick_place(q, grip, goal, int(episode.info.get("level", level_of(goal))), self.success)
 
 
 def grasp_step(steps: int) -> int:

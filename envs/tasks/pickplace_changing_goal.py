@@ -89,4 +89,4 @@ class PickPlaceChangingGoal(PickPlace):
 
     def evaluate(self, q, grip, episode: Episode) -> dict[str, float]:
         q, grip = check_grip_trajectory(q, grip)
-        return run_pick_place(q, grip, np.asarray(episode.info["new_goal"], float), 0)
+        return run_pick_place(q, grip, np.asarray(episode.info["new_goal"], float), 0, self.success)

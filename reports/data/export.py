@@ -1,7 +1,8 @@
-"""A compact export of one study, kept in the repository (reports/studies/<slug>/) so that RESULTS.md regenerates
+"""A compact export of one study, kept in the repository (reports/studies/<name>/) so that RESULTS.md regenerates
 on a machine that does not have the study's MLflow store (reports.data.studyimport reads it back into a store).
 
     python -m reports export --study NAME_OR_RUN_ID [--tracking-uri URI] [--out reports/studies]
+                             [--with-models [--models-at N ...]] [--with-checkpoints]
 
 An export folder holds:
     runs.json   the study's parent run first, then every run below it (children, any depth) by start time; per
@@ -9,10 +10,21 @@ An export folder holds:
                 parent_run_id (original id; null for the parent), params, tags, metrics (latest values),
                 histories (every metric key: [[step, timestamp ms, value], ...] sorted, thinned as
                 HISTORY_NOTE says) and artifacts (path -> sha256 of the exported file); plus format,
-                study_name, experiment (the study kind).
+                study_name, experiment (the study kind), and models ({"at": [N, ...]}) where it carries models;
+                records_sha256, the digest of all the above (records_digest), which the import checks: a record
+                edited after the export is refused (format acrmdn-study-export/2; /1 exports have none).
     artifacts/<run_id>/rollouts/<task>.npz, rollouts/ik_timing.json and rollouts/modes/<task>.json (mode use per
-                episode, experiments.mode_repeats): the artifacts the reports read; nothing else (no checkpoints,
-                models or figures). Float arrays are stored as float32.
+                episode, experiments.mode_repeats): the artifacts the reports read; nothing else (no checkpoints
+                or figures, and models only as below). Float arrays are stored as float32.
+
+Models travel with an export on request (`--with-models`, reports.data.export_models): each finished cell's final
+model and, with `--models-at N ...`, the checkpoints its cells kept at those iterations, as weights alone
+(artifacts/<run_id>/weights_at/<N>/weights.pt, stm.training.weights: float32 state dict and configs, read with
+torch.load(weights_only=True), a few MB each; the same weights give the same bytes) with the run's
+config/config.json. The choice is remembered: a later plain export of the study carries the same models (and those
+of new finished cells), and refuses to drop one the store no longer holds. Imported into a fresh store, the study's
+models are evaluated anew by `python -m experiments milestones --study NAME [--iterations N ...] [--feedback MODE]`
+exactly as they are from the original store.
 
 A snapshot (`--with-checkpoints`) is an export that can also be trained on: each unfinished cell's resume
 checkpoint (checkpoint/model.pt: weights, optimiser, RNG state, history) and every cell's kept checkpoints
@@ -20,6 +32,11 @@ checkpoint (checkpoint/model.pt: weights, optimiser, RNG state, history) and eve
 (reports.data.studyimport), the same study command resumes every cell where it stopped and the milestones command
 finds its checkpoints. Snapshots weigh megabytes per cell: they go to SNAPSHOTS (ignored by git), never to the
 committed exports.
+
+The folder is ROOT/<study name> (the study name rule of experiments.runtime.study_names makes the name a folder name;
+resolved, it must lie inside ROOT). An export replaces only an earlier export of the same study there (its runs.json
+names the study) and deletes only the files that earlier runs.json listed; a folder holding anything else is an
+error, and nothing is written.
 
 The export is deterministic (sorted keys, fixed zip dates, canonical JSON): re-exporting an unchanged study gives
 the same bytes, and a diff shows what changed. It names no path of this machine: tags that hold one
@@ -43,10 +60,17 @@ import numpy as np
 from envs.fileio import atomic_write_bytes
 from experiments.cell_run import CHECKPOINT_DIR, CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR
 from experiments.mode_repeats import MODES_DIR
+from experiments.runtime.study_names import inside, study_folder
 from experiments.runtime.tracking import PARENT_TAG, store_dir
 from reports.data.store import Store, Study
 
-FORMAT = "acrmdn-study-export/1"
+FORMAT = "acrmdn-study-export/2"  # /2: runs.json carries RECORDS_KEY, the digest of its records
+# /1: exports written before the digest (the committed ones among them): read and imported as they are, their records
+# unverified. A digest added to them now would certify nothing about edits made before it, so they get none: the
+# format says which exports are verified
+FORMAT_UNVERIFIED = "acrmdn-study-export/1"
+FORMATS = (FORMAT, FORMAT_UNVERIFIED)
+RECORDS_KEY = "records_sha256"
 RUNS_FILE = "runs.json"
 ARTIFACTS = "artifacts"
 DEFAULT_EXPORTS = Path("reports/studies")
@@ -114,9 +138,10 @@ def _sort_key(point: list) -> tuple:
 
 # ------------------------------------------------------------------------------------------------ reading
 class _Exporter:
-    def __init__(self, store: Store, study: Study, checkpoints: bool = False):
+    def __init__(self, store: Store, study: Study, checkpoints: bool = False, models=None):
         self.store, self.study, self.client = store, study, store.client
         self.checkpoints = checkpoints
+        self.models = models  # reports.data.export_models.ModelChoice, or None: no models
         self.roots = _machine_roots(store.uri)
         self.dropped: set[str] = set()
 
@@ -189,6 +214,8 @@ class _Exporter:
         return out
 
     def export(self) -> tuple[dict, dict[str, bytes]]:
+        from reports.data.export_models import MODELS_KEY, run_models
+
         runs, files = [], {}
         with tempfile.TemporaryDirectory(prefix="export-") as tmp:
             for r in self.runs():
@@ -196,6 +223,8 @@ class _Exporter:
                 arts = self.artifacts(rid, Path(tmp))
                 if self.checkpoints:
                     arts.update(self.checkpoint_files(r, Path(tmp)))
+                if self.models is not None:
+                    arts.update(run_models(self, r, self.models, Path(tmp)))
                 files.update({f"{ARTIFACTS}/{rid}/{p}": b for p, b in arts.items()})
                 runs.append({
                     "run_id": rid, "run_name": r.info.run_name, "status": r.info.status,
@@ -206,6 +235,8 @@ class _Exporter:
                     "artifacts": {p: hashlib.sha256(b).hexdigest() for p, b in arts.items()}})
         doc = {"format": FORMAT, "study_name": self.study.name, "experiment": self.study.experiment,
                "history_thinning": HISTORY_NOTE, "dropped": sorted(self.dropped), "runs": runs}
+        if self.models is not None:
+            doc[MODELS_KEY] = {"at": list(self.models.at)}
         return doc, files
 
 
@@ -215,34 +246,83 @@ def _machine_roots(uri: str) -> list[str]:
     return sorted(str(r) for r in roots if len(r.parts) > 1)
 
 
-def export_study(store: Store, ident: str, out_root: Path | None = None, checkpoints: bool = False
-                 ) -> tuple[Path, dict, int]:
-    """Write the export of study `ident` (study_name or parent run id) to out_root/<slug>/ (default: DEFAULT_EXPORTS,
-    or SNAPSHOTS with `checkpoints`), replacing an earlier export there: the folder, its runs.json and its byte
-    size."""
+def export_study(store: Store, ident: str, out_root: Path | None = None, checkpoints: bool = False,
+                 with_models: bool = False, models_at: list[int] | None = None) -> tuple[Path, dict, int]:
+    """Write the export of study `ident` (study_name or parent run id) to out_root/<name>/ (default: DEFAULT_EXPORTS,
+    or SNAPSHOTS with `checkpoints`), replacing an earlier export of the study there: the folder, its runs.json and
+    its byte size. With `with_models`, or where the earlier export carried models, the models too (export_models)."""
+    from reports.data.export_models import check_models, earlier_export, model_choice
+
     out_root = out_root or (SNAPSHOTS if checkpoints else DEFAULT_EXPORTS)
     if checkpoints and out_root.resolve() == DEFAULT_EXPORTS.resolve():
         raise ExportError(f"a snapshot holds checkpoints (megabytes per cell) and stays out of {DEFAULT_EXPORTS}, "
                           f"which git keeps; choose another --out (default {SNAPSHOTS})")
     study = store.studies(None, ident)[0]
-    doc, files = _Exporter(store, study, checkpoints).export()
+    folder = study_folder(out_root, study.name)  # out_root/<name>, resolved inside out_root
+    previous = previous_files(folder, study.name)  # never another study's export, nor a folder that is none
+    earlier = earlier_export(folder)  # its models are remembered
+    models = model_choice(with_models, models_at, earlier)
+    doc, files = _Exporter(store, study, checkpoints, models).export()
+    check_models(doc, models, earlier, folder)
+    doc[RECORDS_KEY] = records_digest(doc)
     text = dumps(doc) + "\n"
     leaked = [r for r in _machine_roots(store.uri) if r in text]
     if leaked:  # a path in a metric key or a run name: refuse rather than commit it
         raise ExportError(f"the export of {study.name!r} would contain the path {leaked[0]}; rename what holds it")
-    folder = out_root / study.slug
-    if folder.exists() and any(folder.iterdir()) and not (folder / RUNS_FILE).exists():
-        raise ExportError(f"{folder} exists and is not a study export; choose another --out")
     for rel, data in files.items():
-        atomic_write_bytes(folder / rel, data)
+        atomic_write_bytes(inside(folder, folder / rel), data)
     atomic_write_bytes(folder / RUNS_FILE, text.encode())  # last: it lists (and hashes) the files above
-    keep = {folder / RUNS_FILE, *(folder / rel for rel in files)}
-    for path in sorted(folder.rglob("*"), reverse=True):  # stale files of an earlier export, then empty folders
-        if path.is_file() and path not in keep:
+    _remove(folder, previous - {RUNS_FILE, *files})  # what the earlier export listed and this one does not
+    return folder, doc, sum((folder / rel).stat().st_size for rel in (RUNS_FILE, *files))
+
+
+def listed_files(doc: dict) -> set[str]:
+    """The files of an export folder its runs.json lists: itself and every run's artifacts."""
+    runs = doc.get("runs") if isinstance(doc.get("runs"), list) else []
+    return {RUNS_FILE} | {f"{ARTIFACTS}/{r['run_id']}/{p}" for r in runs if isinstance(r, dict)
+                          and isinstance(r.get("run_id"), str) and isinstance(r.get("artifacts"), dict)
+                          for p in r["artifacts"]}
+
+
+def previous_files(folder: Path, study_name: str) -> set[str]:
+    """The files the export already in `folder` wrote (what a new export of the same study may replace or remove);
+    an ExportError when the folder holds something else: another study's export, or anything without a readable
+    runs.json (nothing there is ours to overwrite or delete)."""
+    if not folder.exists() or (folder.is_dir() and not any(folder.iterdir())):
+        return set()
+    try:
+        doc = json.loads((folder / RUNS_FILE).read_text())
+    except (OSError, ValueError):
+        raise ExportError(f"{folder} exists and is not a study export (no readable {RUNS_FILE}); move it aside or "
+                          "choose another --out") from None
+    owner = doc.get("study_name") if isinstance(doc, dict) else None
+    if owner != study_name:
+        raise ExportError(f"{folder} holds the export of study {owner!r}, not {study_name!r}; move it aside or choose "
+                          "another --out")
+    return listed_files(doc)
+
+
+def _remove(folder: Path, stale: set[str]) -> None:
+    """Delete the listed files of an earlier export (each checked to lie in the folder), then the folders they
+    leave empty, up to the export's own."""
+    emptied = set()
+    for rel in sorted(stale):
+        path = inside(folder, folder / rel)
+        if path.is_file():
             path.unlink()
-        elif path.is_dir() and not any(path.iterdir()):
+            emptied.update(p for p in path.parents if folder in p.parents)
+    for path in sorted(emptied, key=lambda p: len(p.parts), reverse=True):
+        if path.is_dir() and not any(path.iterdir()):
             path.rmdir()
-    return folder, doc, sum(p.stat().st_size for p in keep)
+
+
+def records_digest(doc: dict) -> str:
+    """The sha256 of everything runs.json records (every run's params, tags, metrics, histories, status, times and
+    artifact hashes, the study's name and kind) but the digest itself, as canonical JSON: written at export, checked
+    at import, so that a record edited afterwards is refused. It proves integrity against edits, not authorship:
+    whoever edits a record can recompute it."""
+    body = {k: v for k, v in doc.items() if k != RECORDS_KEY}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def size_text(n: int) -> str:

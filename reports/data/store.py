@@ -19,7 +19,8 @@ Child artifact `rollouts/<E>.npz` (np.savez_compressed; metres, robot base frame
     ideal_tip (B, K, 3) ideal path (circle), expert_tip (B, Te+1, 3) the IK expert's direct path
     (changing goal; NaN-padded rows at the end); every other per-episode numeric result of the task's
     evaluate as (B,) float under its own name, NaN where missing (e.g. multimodal tasks: mode_<name> 0/1 one per
-    mode, between 0/1, collided 0/1, lateral_offset m, posture_coordinate).
+    mode, between 0/1, collided 0/1, lateral_offset m, posture_coordinate; pick-and-place: placed, success_strict);
+    a per-episode tuple of steps (grip_close_steps: the rows the grip command closed at) as (B, L) int, -1 padded.
 Child artifact `rollouts/modes/<E>.json` (eval.mode_repeats R > 0, tasks with modes; experiments.mode_repeats):
     {task, modes, repeats, deterministic, sampling_seeds (R,), mode (B, R) index or -1, success (B, R) 0/1,
     entropy_bits (B,), every_mode (B,)}; with the metrics `E/modes_repeats`, `E/modes_entropy_bits_mean`,
@@ -48,7 +49,8 @@ import numpy as np
 import pandas as pd
 
 from experiments.runtime.backend_internals import MLFLOW_TABLES, table_names
-from experiments.runtime.tracking import (  # noqa: F401  (file_safe: the reports' name for output files)
+from experiments.runtime.study_names import check_study_name
+from experiments.runtime.tracking import (  # noqa: F401  (file_safe: the reports' name for figure files)
     DEFAULT_TRACKING_URI,
     FAILED_STATUSES,
     PARENT_TAG,
@@ -107,8 +109,15 @@ class Study:
 
     @property
     def slug(self) -> str:
-        """Folder name for this study's outputs."""
-        return file_safe(self.name)
+        """Folder name for this study's outputs: its name, which the study name rule makes one
+        (experiments.runtime.study_names; StudyNameError for a name from before the rule, never a cleaned one)."""
+        return check_study_name(self.name)
+
+    @property
+    def split(self) -> str:
+        """The episodes it was evaluated on: "validation" where a run or the parent says so, else "test"."""
+        said = [v for c in ("tags.split", "params.eval.split") if c in self.children for v in self.children[c]]
+        return "validation" if "validation" in [*said, self.parent.get("tags.split")] else "test"
 
     @property
     def ok(self) -> pd.DataFrame:
