@@ -232,7 +232,7 @@ def test_report_of_a_study_without_figures_shows_gaps(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert report_main(["--tracking-uri", uri, "--out", str(tmp_path / "out"), "--no-log-artifacts"]) == 0
     html = (tmp_path / "out" / "broken" / "index.html").read_text()
-    assert "gap: no figures/smoothing_tip_paths.png" in html and "FAILED" in html
+    assert "smoothing_tip_paths</b>: no figures/smoothing_tip_paths.png" in html and "FAILED" in html
     md = (tmp_path / "out" / "broken" / "smoothing_table.md").read_text()
     assert re.search(r"\| skeleton \(before\) +\| 12\.5 +\| gap +\|", md)
 

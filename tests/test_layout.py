@@ -1,10 +1,12 @@
 """The package layout: every module of every package is at most 400 lines, every package folder has an
-__init__.py whose docstring says what the subpackage is for, a module name is used once across the
-packages, and pyproject's package list installs every package."""
+__init__.py whose docstring says what the subpackage is for and names each of its modules, as does the package's row
+of docs/architecture.md, a module name is used once across the packages, and pyproject's package list installs every
+package."""
 
 from __future__ import annotations
 
 import ast
+import re
 import tomllib
 from collections import Counter
 from pathlib import Path
@@ -56,3 +58,31 @@ def test_pyproject_installs_every_package():
     found = set(find_packages(str(REPO), include=config["include"]))
     expected = {".".join(d.relative_to(REPO).parts) for d in _package_dirs()}
     assert expected <= found, f"not installed: {sorted(expected - found)}"
+
+
+def _named_modules(folder: Path) -> list[str]:
+    """The modules a package's docstring and its row of docs/architecture.md name: all but __init__, __main__ and
+    the private ones."""
+    return sorted(p.stem for p in folder.glob("*.py") if not p.name.startswith("_"))
+
+
+@pytest.mark.parametrize("folder", _package_dirs(), ids=lambda p: str(p.relative_to(REPO)))
+def test_a_package_docstring_names_each_of_its_modules(folder):
+    doc = ast.get_docstring(ast.parse((folder / "__init__.py").read_text())) or ""
+    missing = [m for m in _named_modules(folder) if not re.search(rf"(?<![\w.]){m}(?!\w)", doc)]
+    assert not missing, f"{(folder / '__init__.py').relative_to(REPO)}: its docstring does not name {missing}"
+
+
+def _architecture_rows() -> dict[str, str]:
+    """docs/architecture.md's package table: `folder/` -> the row's text."""
+    rows = re.findall(r"^\| `([\w/]+)/` \| (.*) \|$", (REPO / "docs" / "architecture.md").read_text(), re.M)
+    return {folder: text for folder, text in rows}
+
+
+@pytest.mark.parametrize("folder", _package_dirs(), ids=lambda p: str(p.relative_to(REPO)))
+def test_architecture_names_each_module_of_a_package(folder):
+    rows = _architecture_rows()
+    key = folder.relative_to(REPO).as_posix()
+    assert key in rows, f"docs/architecture.md has no row for `{key}/` in its package table"
+    missing = [m for m in _named_modules(folder) if f"`{m}.py`" not in rows[key]]
+    assert not missing, f"docs/architecture.md's row for `{key}/` does not name {[f'{m}.py' for m in missing]}"

@@ -1,5 +1,5 @@
 """A cell's trained STM as an MLflow model: logged once per run into the run's experiment,
-loadable by mlflow.pytorch.load_model as the trained module, and the README's "Use a trained
+loadable by mlflow.pytorch.load_model as the trained module, and docs/usage.md's "Use a trained
 model" snippet run as written against a smoke study's store."""
 
 from __future__ import annotations
@@ -92,14 +92,15 @@ def test_requirements_are_pinned_to_this_environment():
     assert pins["torch"] == metadata.version("torch") and pins["mlflow"] == mlflow.__version__
 
 
-def _readme_snippet() -> str:
-    text = (REPO / "README.md").read_text()
+def _usage_snippet() -> str:
+    """The snippet of docs/usage.md, "Use a trained model"."""
+    text = (REPO / "docs" / "usage.md").read_text()
     section = text.split("## Use a trained model", 1)[1].split("\n## ", 1)[0]
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
 @pytest.mark.slow
-def test_readme_snippet_rolls_out_a_trained_cell(smoke_store, tmp_path):
+def test_usage_snippet_rolls_out_a_trained_cell(smoke_store, tmp_path):
     """On the session's smoke ablation (conftest.py): the snippet reads ./mlflow.db of the folder it runs in."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     env.pop("MLFLOW_TRACKING_URI", None)
@@ -111,7 +112,7 @@ def test_readme_snippet_rolls_out_a_trained_cell(smoke_store, tmp_path):
 
     # the snippet as a user runs it: a fresh interpreter in the folder that holds mlflow.db; what it made is
     # saved for the checks below
-    script = _readme_snippet() + textwrap.dedent("""
+    script = _usage_snippet() + textwrap.dedent("""
         import torch
         torch.save({"run_id": run.info.run_id, "model_type": type(model).__name__, "is_mdn": model.is_mdn,
                     "state": model.state_dict(), "q": rollout.q, "q0": q0, "metrics": metrics,

@@ -134,10 +134,10 @@ def built(store, tmp_path_factory):
 @pytest.mark.slow
 def test_every_table_and_figure_is_produced(built):
     folder = built / "test-study"
-    for table in ("success_table", "circle_table", "train_time_table", "metrics_table"):
+    for table in ("table_one", "claims_table", "success_table", "circle_table", "train_time_table", "metrics_table"):
         for ext in ("md", "html", "tex", "csv"):
             assert (folder / f"{table}.{ext}").stat().st_size > 0, (table, ext)
-    for fig in ("success_bars", "circles", "compute_time", "train_time", "training_curves", "tip_paths",
+    for fig in ("table_one", "success_bars", "circles", "compute_time", "train_time", "training_curves", "tip_paths",
                 "changing_goal"):
         assert drawn_colours(folder / f"{fig}.png") > 10, fig  # drawn, not a blank canvas
         assert is_pdf(folder / f"{fig}.pdf"), fig
@@ -342,11 +342,15 @@ def test_store_whose_only_study_failed_is_one_line_exit_2_and_no_folder(tmp_path
 
 
 @pytest.mark.slow
-def test_index_opens_with_headline_table_and_figures_and_folds_the_metric_dump(built):
+def test_index_opens_with_table_one_and_reads_in_the_order_of_results_md(built):
+    """Table I and its figure first, then the paper's comparisons, the circles, the compute, each table followed by
+    its figures; the metric dump last and folded."""
     index = (built / "test-study" / "index.html").read_text()
-    order = [index.index(s) for s in ("Success rate (Table I, extended)", "src='success_bars.png'",
-                                      "src='circles.png'", "src='compute_time.png'", "Circle drawing",
-                                      "src='training_curves.png'", "<details>", "All logged metrics")]
+    order = [index.index(s) for s in ("Table I: success rate, ours beside the paper", "src='table_one.png'",
+                                      "comparisons on Table I&#x27;s cells", "Circle drawing", "src='circles.png'",
+                                      "Training time per variant", "src='compute_time.png'",
+                                      "src='training_curves.png'", "Success rate (Table I, extended)",
+                                      "src='success_bars.png'", "<details>", "All logged metrics")]
     assert order == sorted(order), order
     folded = index[index.index("<details>"):index.index("</details>")]
     assert "All logged metrics" in folded and 'id="T_metrics_table"' in folded
@@ -363,29 +367,92 @@ def test_no_generated_file_names_a_path_of_the_machine(store, built):
 
 
 # ------------------------------------------------------------------ seed-level statistics (experiments.stats)
-def _simulated_seed_rates(rng, mean: float, spread: float, seeds: int, replicates: int, episodes: int = 34):
-    """Each replicate: `seeds` training seeds whose true rates scatter around `mean` with standard deviation
-    `spread` (a beta distribution; all at `mean` when spread is 0), each evaluated on `episodes` episodes."""
+RATES = (0.01, 0.02, 0.05, 0.5, 0.8, 0.95, 0.98, 0.99)  # true rates of the coverage grid
+EPISODES = 34  # per seed, as the headline's evaluations
+
+
+def _logit_normal(rate: float, spread: float) -> tuple[float, float]:
+    """(location, scale) on the logit scale of seed rates whose mean is `rate` and whose standard deviation would be
+    `spread` at a 50 % rate (it shrinks towards the edges, as a rate's spread must: 25 points around 1 % cannot
+    exist); (logit(rate), 0) without a spread."""
+    from scipy.optimize import brentq
+    from scipy.special import expit, logit
+
+    z, w = np.polynomial.hermite_e.hermegauss(80)
+    w = w / w.sum()
     if spread == 0:
-        true = np.full((replicates, seeds), mean)
-    else:
-        concentration = mean * (1 - mean) / spread ** 2 - 1
-        true = rng.beta(mean * concentration, (1 - mean) * concentration, size=(replicates, seeds))
-    return rng.binomial(episodes, true) / episodes
+        return float(logit(rate)), 0.0
+    scale = brentq(lambda s: math.sqrt(np.sum(w * expit(s * z) ** 2) - 0.25) - spread, 1e-6, 20)
+    return brentq(lambda m: np.sum(w * expit(m + scale * z)) - rate, -30, 30), scale
+
+
+def _true_seed_rates(rng, rate: float, spread: float, seeds: int, replicates: int) -> np.ndarray:
+    """(replicates, seeds) true rates of trained models, logit-normal around the variant's rate (_logit_normal)."""
+    from scipy.special import expit
+
+    loc, scale = _logit_normal(rate, spread)
+    return expit(loc + scale * rng.standard_normal((replicates, seeds)))
 
 
 @pytest.mark.parametrize("seeds", [3, 5])
-@pytest.mark.parametrize("spread", [0.0, 0.08, 0.15])
-def test_seed_interval_keeps_its_coverage_with_few_seeds(spread, seeds):
-    """The seed-level interval covers the variant's rate (the mean over seeds' true rates) at least 93 % of the
-    time, for seeds that agree and seeds 8 or 15 points apart; the cluster bootstrap it replaced covered about
-    85 % at a 15-point spread with 3 seeds, the pooled Wilson interval 65 %."""
-    from experiments.stats import seed_interval
-    mean, replicates = 0.6, 20_000  # coverage's standard error ~0.15 points
-    rng = np.random.default_rng(int(100 * spread) + seeds)
-    low, high = seed_interval(_simulated_seed_rates(rng, mean, spread, seeds, replicates))
-    coverage = np.mean((low <= mean) & (mean <= high))
-    assert coverage >= 0.93, coverage
+@pytest.mark.parametrize("spread", [0.0, 0.10, 0.25])
+def test_seed_level_interval_keeps_its_coverage_at_every_rate(spread, seeds):
+    """The seed-level interval of a success rate (rate_interval) covers the variant's rate (the mean of its seeds'
+    true rates) at least 93 % of the time at rates from 1 % to 99 %, for seeds that agree and seeds 10 or 25 points
+    apart (at 50 %), with 3 and 5 seeds of 34 episodes, and it never has zero width; the t-interval over the rates
+    alone, which it replaced, collapses near the edges (it covers a 1 % rate with 3 seeds about 60 % of the time)."""
+    from experiments.stats import rate_interval, seed_interval
+    replicates = 4000  # coverage's standard error ~0.4 points
+    rng = np.random.default_rng(1000 * seeds + int(100 * spread))
+    for rate in RATES:
+        rates = rng.binomial(EPISODES, _true_seed_rates(rng, rate, spread, seeds, replicates)) / EPISODES
+        low, high = rate_interval(rates, EPISODES)
+        coverage = np.mean((low <= rate) & (rate <= high))
+        assert coverage >= 0.93, (rate, coverage)
+        assert (high > low).all()  # never a point, whatever the seeds agree on
+        t_low, t_high = seed_interval(rates)
+        assert (low <= t_low).all() and (high >= t_high).all()  # never narrower than the t-interval it extends
+    t_low, t_high = seed_interval(rng.binomial(EPISODES, np.full((replicates, 3), 0.01)) / EPISODES)
+    assert np.mean((t_low <= 0.01) & (0.01 <= t_high)) < 0.7
+
+
+def test_seed_level_interval_of_rates_is_never_a_point():
+    """Every outcome of 3 seeds of 34 episodes (35^3 of them, seeds that all fail or all succeed included), and
+    seeds of unequal episode counts: an interval of positive width around the mean rate."""
+    from experiments.stats import rate_interval
+    k = np.stack(np.meshgrid(*[np.arange(EPISODES + 1)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    low, high = rate_interval(k / EPISODES, EPISODES)
+    mean = k.mean(axis=1) / EPISODES
+    assert (high > low).all() and (low <= mean + 1e-12).all() and (mean <= high + 1e-12).all()
+    assert rate_interval([0.0, 0.0, 0.0], EPISODES)[1] > 0 and rate_interval([1.0, 1.0, 1.0], EPISODES)[0] < 1
+    low, high = rate_interval([0.0, 0.0], [10, 100])
+    assert 0 == low < high < 1
+    assert all(math.isnan(x) for x in rate_interval([0.5], EPISODES))  # one seed: no spread between seeds to read
+
+
+@pytest.mark.parametrize(("rate_a", "rate_b"), [(0.01, 0.01), (0.05, 0.01), (0.5, 0.5), (0.8, 0.5), (0.99, 0.95),
+                                                (0.99, 0.99)])
+def test_paired_difference_interval_keeps_its_coverage(rate_a, rate_b):
+    """The paired difference's interval (paired_interval: seeds of two variants on the same episodes) covers the
+    difference of the variants' rates at least 93 % of the time, near the edges too, for 3 and 5 seeds and spreads
+    of 0 and 25 points; episodes shared (an easy episode is easy for both: one uniform draw per episode decides
+    both outcomes) or not; never a point, where the t-interval over the differences collapses (both at 0 %)."""
+    from experiments.stats import paired_interval
+    rng = np.random.default_rng(int(1000 * rate_a + 10 * rate_b))
+    replicates = 3000
+    for seeds in (3, 5):
+        for spread in (0.0, 0.25):
+            ta = _true_seed_rates(rng, rate_a, spread, seeds, replicates)
+            tb = _true_seed_rates(rng, rate_b, spread, seeds, replicates)
+            for shared in (True, False):
+                u = rng.random((replicates, seeds, EPISODES))
+                v = u if shared else rng.random((replicates, seeds, EPISODES))
+                a = (u < ta[..., None]).mean(axis=-1)
+                b = (v < tb[..., None]).mean(axis=-1)
+                low, high = paired_interval(a, b, EPISODES, EPISODES)
+                coverage = np.mean((low <= rate_a - rate_b) & (rate_a - rate_b <= high))
+                assert coverage >= 0.93, (seeds, spread, shared, coverage)
+                assert (high > low).all()
 
 
 def test_seed_interval_is_the_t_interval_of_the_seeds_rates():
@@ -427,6 +494,44 @@ def test_sign_flip_and_permutation_p_values_are_exact():
     groups = group_comparison(a, b)
     welch = stats.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
     assert groups["n"] == "6+6" and (groups["low"], groups["high"]) == pytest.approx((welch.low, welch.high))
+
+
+def test_paired_interval_keeps_the_pairings_gain_mid_range_and_holds_at_the_edges():
+    from experiments.stats import paired_comparison, paired_interval, seed_interval
+    # five seeds whose rates move together (LSTM-MDN against LSTM on the changing-goal reacher): the t-interval over
+    # the differences stands, clear of zero, where taking the two as independent would not be
+    a, b = np.array([6, 9, 12, 3, 12]) / 34, np.array([12, 15, 24, 6, 24]) / 34
+    low, high = paired_interval(a, b, EPISODES, EPISODES)
+    t_low, t_high = seed_interval(a - b, bounds=(-1.0, 1.0))
+    assert low <= t_low and high >= t_high and high < 0
+    # both variants at 0 % on every seed: the t-interval is the point 0, the paired interval is not
+    zero = paired_comparison({0: 0.0, 1: 0.0, 2: 0.0}, {0: 0.0, 1: 0.0, 2: 0.0}, {s: 34 for s in range(3)},
+                             {s: 34 for s in range(3)})
+    assert zero["low"] < 0 < zero["high"] and zero["difference"] == 0.0
+    assert paired_comparison({0: 0.0, 1: 0.0}, {0: 0.0, 1: 0.0})["low"] == 0.0  # without episode counts: the t
+
+
+def test_a_validation_study_stays_out_of_headline_tables_and_comparisons_label_it():
+    import pandas as pd
+
+    from reports.data.store import StoreError, Study
+    from reports.results.comparisons import sentence
+    from reports.results.selection import headline_study
+
+    def study(**columns) -> Study:
+        kids = pd.DataFrame({"run_id": ["a", "b"], "status": ["FINISHED"] * 2, **columns})
+        return Study("milestones", {"run_id": "p", "tags.study_name": "s"}, kids, client=None)
+
+    for validation in (study(**{"tags.split": ["validation", "validation"]}),
+                       study(**{"params.eval.split": [None, "validation"]})):
+        assert validation.split == "validation"
+        with pytest.raises(StoreError, match="'s' was evaluated on the validation episodes"):
+            headline_study(validation, "success_table")
+    plain = study(**{"tags.split": ["test", None]})
+    assert plain.split == "test" and headline_study(plain, "success_table") is plain and study().split == "test"
+    c = {"difference": 0.1, "low": -0.1, "high": 0.3, "p": 0.5, "test": "paired", "n": 3}
+    assert "validation" not in sentence(c) and sentence({**c, "validation": True}).endswith(
+        "(95 % interval -10 to +30; paired, 3 seeds, validation episodes; p = 0.50)")
 
 
 def test_small_p_values_print_as_a_bound_not_as_zero():
@@ -489,19 +594,57 @@ def test_failed_study_beside_a_good_one_is_skipped_with_one_line(tmp_path, capsy
     assert (out / "good-sweep" / "index.html").exists() and not (out / "broken").exists()
 
 
-@pytest.mark.parametrize("name", ["../x", "a b/c", "paper-pickplace-30k"])
+@pytest.mark.parametrize("name", ["paper-pickplace-30k", "paper-pickplace-30k-milestones@5000", "x+y", "a..b"])
 def test_the_report_path_a_study_prints_is_where_its_report_goes(name):
     """The ablation, sweep and post-processing summaries print experiments.runtime.tracking.report_index; the report
-    builds in DEFAULT_OUT/<Study.slug>/ (a name that is no file name is made one, the same way in both)."""
+    builds in DEFAULT_OUT/<the study's name>/, a folder name by the study name rule."""
     import pandas as pd
 
+    from experiments.runtime.study_names import study_folder
     from experiments.runtime.tracking import report_index
     from reports.__main__ import DEFAULT_OUT
     from reports.data.store import Study
 
     study = Study("ablation", {"run_id": "r", "tags.study_name": name}, pd.DataFrame(), client=None)
-    assert report_index(name) == f"{DEFAULT_OUT.as_posix()}/{study.slug}/index.html"
-    assert ".." not in Path(report_index(name)).parts
+    assert report_index(name) == f"{study_folder(DEFAULT_OUT, study.slug).as_posix()}/index.html"
+    assert Path(report_index(name)).parts == (*DEFAULT_OUT.parts, name, "index.html")
+
+
+@pytest.mark.parametrize("name", ["..", ".", "../x", "a b", 'a"b', "a\nb", "a/b", "-x", "x" * 101])
+def test_a_study_name_that_breaks_the_rule_gets_no_folder(name):
+    """A store from before the rule may hold such a name: no folder is made of it, cleaned or not (two names that
+    cleaned to one folder would share it, and '..' is the folder above)."""
+    import pandas as pd
+
+    from experiments.runtime.study_names import RULE, StudyNameError
+    from reports.data.store import Study
+
+    study = Study("ablation", {"run_id": "r", "tags.study_name": name}, pd.DataFrame(), client=None)
+    with pytest.raises(StudyNameError) as err:
+        study.slug  # noqa: B018 - the property raises
+    assert RULE in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_report_rebuild_removes_only_what_the_last_build_wrote(tmp_path):
+    """A report folder's manifest lists what a build wrote: the next build removes those files (a figure that became a
+    gap does not linger) and nothing else; a manifest line leading out of the folder is refused."""
+    from experiments.runtime.study_names import UnsafeFolder
+    from reports.study_report.build import MANIFEST, _clear, _write_manifest
+
+    folder = tmp_path / "out" / "s"
+    folder.mkdir(parents=True)
+    ours, mine = folder / "old_figure.png", folder / "notes.md"
+    ours.write_text("x")
+    mine.write_text("the user's")
+    _write_manifest(folder, {ours, tmp_path / "elsewhere.png"})  # a path outside the folder is never listed
+    assert (folder / MANIFEST).read_text() == "old_figure.png\n"
+    _clear(folder)
+    assert not ours.exists() and mine.read_text() == "the user's" and not (folder / MANIFEST).exists()
+    (tmp_path / "out" / "RESULTS.md").write_text("keep")
+    (folder / MANIFEST).write_text("../RESULTS.md\n")
+    with pytest.raises(UnsafeFolder):
+        _clear(folder)
+    assert (tmp_path / "out" / "RESULTS.md").read_text() == "keep"
 
 
 def test_a_packs_training_time_is_reported_once_not_as_a_spread_over_seeds():
@@ -513,7 +656,7 @@ def test_a_packs_training_time_is_reported_once_not_as_a_spread_over_seeds():
     runs = pd.DataFrame({"task": ["reacher"] * 5, "variant": ["lstm"] * 3 + ["ac-lstm"] * 2, "seed": [0, 1, 2, 0, 1],
                          "metrics.time/train_seconds": [1803.45, 1803.47, 1803.47, 900.0, 1100.0],
                          "tags.worker": ["vm:1", "vm:1", "vm:1", "vm:2", "vm:3"], "status": "FINISHED"})
-    study = SimpleNamespace(ok=runs, children=runs, variants=["lstm", "ac-lstm"])
+    study = SimpleNamespace(name="s", ok=runs, children=runs, variants=["lstm", "ac-lstm"])
     summary = train_time_summary(study)
     assert summary.set_index("variant")["pack"].to_dict() == {"lstm": True, "ac-lstm": False}
     rows = train_time_table(summary, study).rows
@@ -536,7 +679,7 @@ def test_comparisons_pair_the_seeds_that_saw_the_same_episodes():
                                "seed": s, "eval_task": "reacher", "success_rate": r, "n_rollouts": 34.0,
                                "episode_seed": e} for v, s, r, e in rows])
         children = evals[["run_id"]].assign(**{"params.data.start_joint_range": "0.1"})
-        return SimpleNamespace(name=name, eval_metrics=lambda: evals, children=children)
+        return SimpleNamespace(name=name, eval_metrics=lambda: evals, children=children, split="test")
 
     a = study("a", [("lstm", 0, 0.5, 10_000), ("lstm", 1, 0.6, 10_001), ("lstm", 2, 0.7, 10_002),
                     ("ac-lstm", 0, 0.7, 10_000), ("ac-lstm", 1, 0.9, 10_001), ("ac-lstm", 2, 0.8, 10_002)])
@@ -545,7 +688,7 @@ def test_comparisons_pair_the_seeds_that_saw_the_same_episodes():
     paired = comparisons.between(named, "reacher", "a/ac-lstm", "a/lstm")
     assert (paired["test"], paired["n"]) == ("paired", 3)
     assert paired["difference"] == pytest.approx(0.2) and paired["p"] == pytest.approx(0.25)
-    assert comparisons.sentence(paired) == "+20 points (95 % interval -5 to +45; paired, 3 seeds; p = 0.25)"
+    assert comparisons.sentence(paired) == "+20 points (95 % interval -9 to +45; paired, 3 seeds; p = 0.25)"
     # a target sentence quotes the row's seed-level interval: mean 80 %, t-interval 80 +- 4.30 x 10 / sqrt(3)
     assert comparisons.rate_sentence(named, "reacher", "a/ac-lstm") == (
         "80 % (seed-level 95 % interval 55–100%; 3 seeds)")

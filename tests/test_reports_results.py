@@ -15,6 +15,7 @@ from mlflow import MlflowClient
 from PIL import Image
 
 from reports import paper
+from reports.results.provenance import duration
 from reports.results.writer import MAX_FIGURE_WIDTH, ResultsError, parse_template, portable_uri, regeneration_command
 
 REPO = Path(__file__).resolve().parents[1]
@@ -85,10 +86,11 @@ def test_tables_carry_the_runs_numbers_and_the_papers(store, rendered):
     assert "{{" not in text and "TODO" in text
     parents = _parents(store)
     abl, swp = parents["ablation"], parents["sweep"]
-    # provenance: both studies, their commit and the study's own wall time
+    # provenance: one row per study, with its commit (as git abbreviates it) and the study's own wall time
     assert abl.data.tags["study_name"] in text and swp.data.tags["study_name"] in text
-    assert f"`{abl.data.params['git_commit']}`" in text
-    assert f"{abl.data.metrics['time/study_seconds']:.1f} s" in text
+    name, commit = re.escape(abl.data.tags["study_name"]), abl.data.params["git_commit"][:7]
+    assert re.search(rf"^\| {name} +\| ablation +\| `{abl.info.run_id}` +\| `{commit}` ", text, re.M)
+    assert f"| {duration(abl.data.metrics['time/study_seconds'])} " in text
     # the success table: Table I's value beside each row, ours with per-seed rates, both intervals and n
     success = text.split("### Success rate (Table I, extended)")[1].split("###")[0]
     assert re.search(r"\| paper +\|$", success.splitlines()[2]), success
@@ -188,6 +190,11 @@ def test_figure_that_cannot_be_drawn_is_a_visible_line(store, tmp_path, monkeypa
     ('{{ difference("reacher", "lstm", "ac-lstm") }}', "difference takes an evaluated task, then pairs of rows"),
     ('{{ difference("reacher", "nope/lstm", "nope/ac-lstm") }}', "unknown study 'nope'"),
     ("{{figure:success_bars}}", "template syntax error (line 1)"),
+    ('{{ table_one("reacher") }}', "table_one takes TASK=STUDY, one per training task"),
+    ('{{ table_one("reacher=a", "reacher=b") }}', "table_one takes TASK=STUDY, one per training task"),
+    ("a\n\n{{ claims }}", "{{ claims }} (line 3) reads the sources of Table I"),
+    ('{{ notebook("Bad Topic") }}', "a notebook topic is lower-case words joined by '-'"),
+    ('{{ notebook("missing") }}', "cannot read the notebook page's template"),
 ])
 def test_bad_template_is_a_one_line_error_and_writes_nothing(store, tmp_path, capsys, template, message):
     assert _main(store, tmp_path, template=template) == 2
@@ -249,9 +256,46 @@ def test_comparisons_render_from_the_store(store, tmp_path):
     assert "<details><summary>Comparisons of the variants" in text and "</details>" in text
 
 
-def test_repository_template_parses():
-    phs = parse_template((REPO / "reports" / "RESULTS.template.md").read_text())
-    kinds = {(p.kind, p.arg) for p in phs}
-    assert {("provenance", None), ("command", None), ("budget_table", None), ("success_table", None),
-            ("multimodal_table", None), ("train_time_table", None), ("figure", "mode_paths"),
-            ("comparisons", "reacher"), ("difference", "reacher")} <= kinds
+def test_repository_template_and_its_notebook_pages_parse():
+    main = parse_template((REPO / "reports" / "RESULTS.template.md").read_text())
+    assert {("table_one", "reacher=paper"), ("claims", None), ("headline_train_time", None), ("provenance", None),
+            ("command", None), ("notebook", "milestones")} <= {(p.kind, p.arg) for p in main}
+    pages = [parse_template((REPO / "reports" / "notebook" / f"{p.arg}.template.md").read_text())
+             for p in main if p.kind == "notebook"]
+    kinds = {(p.kind, p.arg) for p in main + [p for page in pages for p in page]}
+    assert {("budget_table", None), ("success_table", None), ("multimodal_table", None), ("figure", "mode_paths"),
+            ("comparisons", "reacher"), ("difference", "reacher"), ("lever", "pick-place")} <= kinds
+
+
+def test_table_one_claims_and_a_notebook_page_render_from_the_store(store, tmp_path):
+    """Table I takes each training task's cells from the study named for it, with the paper's value beside them and
+    its figure; {{ claims }} reads the same sources; a notebook page renders from its own template beside the
+    RESULTS template, with figure links relative to the page, and RESULTS.md links it by its title."""
+    name = _parents(store)["ablation"].data.tags["study_name"]
+    (tmp_path / "notebook").mkdir()
+    (tmp_path / "notebook" / "a-topic.template.md").write_text(
+        '# A topic\n\n{{ success_table }}\n\n{{ figure("success_bars") }}\n')
+    template = (f'# R\n\n{{{{ table_one("reacher={name}") }}}}\n\n{{{{ claims }}}}\n\n{{{{ headline_train_time }}}}\n\n'
+                'See {{ notebook("a-topic") }}.\n\n{{ provenance }}\n')
+    proc = _results(store, tmp_path, template=template)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+    text = (tmp_path / "docs" / "RESULTS.md").read_text()
+    row = next(line for line in text.splitlines() if re.match(r"\| reacher +\| a\.c\. LSTM-MDN +\|", line))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[-2:] == [f"{100 * paper.TABLE_I['ac-lstm-mdn']['reacher']:.0f}%", name], cells
+    assert "strict criterion" not in text  # the smoke rollouts record one criterion only
+    assert "](figures/table_one.png)" in text and (tmp_path / "docs" / "figures" / "table_one.png").is_file()
+    assert re.search(r"^\| a\.c\. LSTM-MDN − a\.c\. LSTM +\|", text, re.M)  # the claims
+    assert "See [A topic](notebook/a-topic.md)." in text
+    page = (tmp_path / "docs" / "notebook" / "a-topic.md").read_text()
+    assert "### Success rate (Table I, extended)" in page and "](../figures/success_bars.png)" in page
+    assert re.search(rf"^\| {re.escape(name)} +\| ablation +\|", text, re.M)  # provenance: one row for the study
+
+
+def test_a_notebook_page_error_names_its_template(store, tmp_path, capsys):
+    (tmp_path / "notebook").mkdir()
+    (tmp_path / "notebook" / "t.template.md").write_text("# T\n\n{{ success_tabel }}\n")
+    assert _main(store, tmp_path, template='{{ notebook("t") }}\n') == 2
+    err = capsys.readouterr().err
+    assert "t.template.md: unknown placeholder {{ success_tabel }} (line 3)" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "docs").exists()

@@ -1,5 +1,6 @@
-"""reports/RESULTS.md regenerates from the repository alone: rendering the committed template from the committed
-study exports (reports/studies/) gives the committed file, apart from the output paths in its command line."""
+"""reports/RESULTS.md and its notebook pages (reports/notebook/*.md) regenerate from the repository alone: rendering
+the committed templates from the committed study exports (reports/studies/) gives the committed files, byte for
+byte, apart from the output paths in RESULTS.md's command line."""
 
 from __future__ import annotations
 
@@ -12,10 +13,11 @@ from reports.__main__ import main
 
 REPO = Path(__file__).resolve().parents[1]
 COMMAND = re.compile(r"```sh\nnox -s report -- --results .*?\n```", re.S)
+NOTEBOOK = REPO / "reports" / "notebook"
 
 
 @pytest.mark.slow
-def test_committed_results_md_is_what_the_committed_exports_render(tmp_path):
+def test_committed_results_md_and_notebook_are_what_the_committed_exports_render(tmp_path):
     committed = (REPO / "reports" / "RESULTS.md").read_text()
     pins = re.findall(r"(--(?:ablation|sweep) \S+)", COMMAND.search(committed).group(0))
     out = tmp_path / "reports" / "RESULTS.md"
@@ -24,3 +26,8 @@ def test_committed_results_md_is_what_the_committed_exports_render(tmp_path):
                  "--figures-dir", str(tmp_path / "reports" / "figures")]) == 0
     rendered = out.read_text()
     assert COMMAND.sub("", rendered) == COMMAND.sub("", committed)
+    pages = sorted(p.name for p in NOTEBOOK.glob("*.md") if not p.name.endswith(".template.md"))
+    assert pages == sorted(p.name for p in (tmp_path / "reports" / "notebook").glob("*.md")), \
+        "the committed notebook pages are not those RESULTS.template.md links"
+    for name in pages:
+        assert (tmp_path / "reports" / "notebook" / name).read_text() == (NOTEBOOK / name).read_text(), name

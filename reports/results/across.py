@@ -1,7 +1,7 @@
 """The placeholders over several studies of one training task ({{ data_scaling(...) }}, {{ lever(...) }},
-{{ goal_switch(...) }}, {{ stacking(...) }}, {{ pick_place_failures(...) }}, {{ comparisons(...) }}): how each
-builds its rows, table and figure, and the studies they name, a milestones study's stage included as
-NAME@ITERATION."""
+{{ goal_switch(...) }}, {{ stacking(...) }}, {{ pick_place_failures(...) }}, {{ placement(...) }},
+{{ comparisons(...) }}): how each builds its rows, table and figure, and the studies they name, a milestones study's
+stage included as NAME@ITERATION."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pandas as pd
 
 from experiments.runtime.tracking import MILESTONE_ITERATION
 from experiments.stats import SUCCESS_NOTE
-from reports.analyses import data_scaling, goal_switch, levers, pick_place_failures, stacking
+from reports.analyses import data_scaling, goal_switch, levers, pick_place_failures, placement, stacking
 from reports.data.store import StoreError, Study, file_safe
 from reports.plotting import FigureResult
 from reports.results import comparisons
@@ -77,6 +77,9 @@ ACROSS = {  # template.MULTI_STUDY's placeholders
                       f"tip ends over the new goal: within {pick_place_failures.OVER * 100:g} cm in xy, of all "
                       f"changing-goal episodes."),
         lambda task, studies: f"{file_safe(task)}_pick_place_failures_{file_safe(studies[-1].name)}"),
+    "placement": AcrossStudies(
+        placement.NAME, placement.placement_rows, placement.placement_table, None, levers.LeverError, placement.note,
+        lambda task, studies: ""),
     "comparisons": AcrossStudies(
         comparisons.TITLE, comparisons.paper_rows, comparisons.paper_table, None, comparisons.ComparisonError,
         lambda task: comparisons.NOTE, lambda task, studies: ""),

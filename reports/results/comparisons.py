@@ -13,8 +13,10 @@ from it (experiments.evaluation.episode_seed: eval seed + training seed, whateve
 variant and seed k of another saw the same episodes when the runs logged the same episode seed and count and
 their task's episode options (envs: Task.episode_options, e.g. the start range) agree. Two single-variant rows
 whose seeds pair that way are compared seed by seed (experiments.stats.paired_comparison: the per-seed
-differences, their t-interval, the exact sign-flip p); pooled rows, or rows whose seeds did not see the same
-episodes, as independent groups of models (group_comparison: Welch's interval, the exact permutation p)."""
+differences, their seed-level interval, the exact sign-flip p); pooled rows, or rows whose seeds did not see the
+same episodes, as independent groups of models (group_comparison: Welch's interval, the exact permutation p). The
+paired interval is widened where the two rows' seed-level intervals, combined (experiments.stats.paired_interval),
+reach further: near 0 and 100 % a t-interval over the differences alone under-covers or shrinks to a point."""
 
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from experiments.stats import group_comparison, interval, p_value, paired_comparison, points, seed_interval
+from experiments.stats import group_comparison, interval, p_value, paired_comparison, points, rate_interval
 from reports import paper
 from reports.data.store import Study, order_variants
 from reports.results.template import ROW_SEPARATOR
@@ -46,7 +48,9 @@ NOTE = ("A − B: difference of the mean success over seeds, in percentage point
         "were evaluated on the same episodes; the interval is the t-interval over the per-seed differences and p "
         "the exact sign-flip p (with 3 seeds never below 0.25). groups: the models' rates as two independent "
         "groups (pooled variants, or seeds that saw different episodes); Welch's t-interval and the exact "
-        "permutation p. No correction for the number of comparisons.")
+        "permutation p. A paired interval is widened where A's and B's seed-level intervals, combined, reach "
+        "further (near 0 and 100 %, where a t-interval over the differences alone shrinks to a point). No "
+        "correction for the number of comparisons.")
 
 
 class ComparisonError(ValueError):
@@ -69,9 +73,14 @@ class Side:
     label: str
     variants: tuple[str, ...]
     runs: pd.DataFrame  # variant, seed, success_rate, n_rollouts, episode_seed, episodes (episode options)
+    split: str = "test"  # "validation" when a study of the row was evaluated on the validation episodes
 
     def rates(self) -> dict[int, float]:
         return {int(s): float(r) for s, r in zip(self.runs["seed"], self.runs["success_rate"], strict=True)}
+
+    def rollouts(self) -> dict[int, float]:
+        """seed -> the episodes its rate is over."""
+        return {int(s): float(n) for s, n in zip(self.runs["seed"], self.runs["n_rollouts"], strict=True)}
 
     def episodes(self) -> dict[int, tuple]:
         """seed -> what identifies its episodes (episode seed, count, the task's episode options)."""
@@ -110,7 +119,8 @@ def side(sources: dict[str, Study], eval_task: str, with_study: bool = True) -> 
     if with_study:
         label += f" ({', '.join(dict.fromkeys(s.name for s in sources.values()))})"
     runs = pd.concat([_runs(study, v, eval_task) for v, study in sources.items()], ignore_index=True)
-    return Side(label, variants, runs)
+    split = "validation" if any(s.split == "validation" for s in sources.values()) else "test"
+    return Side(label, variants, runs, split)
 
 
 def _same_episodes(a: Side, b: Side) -> bool:
@@ -124,16 +134,16 @@ def compare(a: Side, b: Side) -> dict:
     """experiments.stats' paired comparison when A and B are single variants whose seeds pair, else the group
     comparison of their models; plus the rows' labels."""
     if len(a.variants) == len(b.variants) == 1 and _same_episodes(a, b):
-        out = paired_comparison(a.rates(), b.rates())
+        out = paired_comparison(a.rates(), b.rates(), a.rollouts(), b.rollouts())
     else:
         out = group_comparison(list(a.runs["success_rate"]), list(b.runs["success_rate"]))
-    return {"A": a.label, "B": b.label, **out}
+    return {"A": a.label, "B": b.label, **out, "validation": "validation" in (a.split, b.split)}
 
 
 def _test(c: dict) -> str:
-    if c["test"] == "paired":
-        return f"paired, {c['n']} seeds"
-    return f"groups, {c['n']} models"
+    """How the rows were compared, and that a row was evaluated on the validation episodes where one was."""
+    label = f"paired, {c['n']} seeds" if c["test"] == "paired" else f"groups, {c['n']} models"
+    return label + (", validation episodes" if c.get("validation") else "")
 
 
 def table_row(eval_task: str, c: dict) -> list[str]:
@@ -156,9 +166,11 @@ def rate_sentence(studies: dict[str, Study], eval_task: str, row: str) -> str:
     """{{ rate(...) }}: a row's mean success over its seeds inline, with the seed-level interval a sentence
     about a target quotes: '96 % (seed-level 95 % interval 89-100 %; 5 seeds)'."""
     study, variants = parse_row(row)
-    rates = list(side(dict.fromkeys(variants, studies[study]), eval_task).runs["success_rate"])
-    low, high = seed_interval(rates)
-    return f"{100 * np.mean(rates):.0f} % (seed-level 95 % interval {interval(low, high)}; {len(rates)} seeds)"
+    row_side = side(dict.fromkeys(variants, studies[study]), eval_task)
+    rates = list(row_side.runs["success_rate"])
+    low, high = rate_interval(rates, list(row_side.runs["n_rollouts"]))
+    where = "; validation episodes" if row_side.split == "validation" else ""
+    return f"{100 * np.mean(rates):.0f} % (seed-level 95 % interval {interval(low, high)}; {len(rates)} seeds{where})"
 
 
 def between(studies: dict[str, Study], eval_task: str, a: str, b: str) -> dict:

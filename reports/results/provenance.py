@@ -1,16 +1,16 @@
-"""The "Studies used" table of RESULTS.md: per study its kind, profile, parent run, git commit, machine and
-software as the runs logged them, seeds, rollouts, runs, wall time and dates."""
+"""The "Studies used" table of RESULTS.md: one row per study with its kind, its parent run, the commits it ran at,
+its dates and wall time, its runs and seeds; the machines and software its runs logged, merged over the studies,
+under it."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import pandas as pd
 
 from reports.data.store import Study
 from reports.study_report import sweep_summary
-from reports.study_report.tables import GAP, Table
+from reports.study_report.tables import Table
 
 # Machine facts a run may log (params or tags, bare or under machine.), in display order.
 MACHINE_KEYS = ("host", "hostname", "machine", "platform", "cpu", "cpu_model", "cores", "cpu_count", "python")
@@ -59,13 +59,14 @@ def _software(study: Study) -> str:
     return ", ".join(parts) or "not logged"
 
 
+COMMIT_CHARS = 7  # commits as git abbreviates them
+
+
 def _commits(study: Study) -> str:
+    """The parent run's commit first, then the others the runs logged (a study resumed or extended later)."""
     parent = study.parent.get("params.git_commit")
     others = [c for c in _values(study, "params.git_commit", "tags.changed.git_commit") if c != parent]
-    text = f"`{parent}`" if parent else "not logged"
-    if others:
-        text += " (also in runs: " + ", ".join(f"`{c}`" for c in others) + ")"
-    return text
+    return ", ".join(f"`{c[:COMMIT_CHARS]}`" for c in [*([parent] if parent else []), *others]) or "not logged"
 
 
 def _range(values) -> str:
@@ -82,11 +83,6 @@ def _seeds(s: Study) -> str:
     return ", ".join(map(str, s.seeds)) or "–"
 
 
-def _rollouts_per_seed(s: Study) -> str:
-    keys = ("params.sweep.eval_rollouts",) if s.kind == "sweep" else ("params.eval.rollouts",)
-    return ", ".join(_values(s, *keys)) or "–"
-
-
 def _runs(s: Study) -> str:
     ch = s.children
     if s.kind == "sweep":  # a pruned trial is a KILLED run, not a failure
@@ -95,32 +91,28 @@ def _runs(s: Study) -> str:
     return f"{len(ch)} ({int((ch['status'] == 'FINISHED').sum())} finished, {int(ch['failed'].sum())} failed)"
 
 
-def provenance_table(studies: list[Study], success: Callable[[Study], pd.DataFrame | None]) -> Table:
-    """One column per study. success(study): its aggregated success rows (reports.study_report.tables.success_summary),
-    or None for a study without a success table (the pooled-rollouts row then reads '–')."""
-    def pooled(s: Study) -> str:
-        agg = success(s)
-        if agg is None or agg.empty:
-            return "–"
-        ok = agg[agg["status"] != GAP]
-        return _range(ok["n"]) if len(ok) else "–"
+def _software_of(studies: list[Study]) -> str:
+    """Every package version the runs of the studies logged, merged: 'name v1/v2, ...'."""
+    versions: dict[str, set[str]] = {}
+    for s in studies:
+        for part in filter(None, _software(s).removeprefix("not logged").split(", ")):
+            name, _, vals = part.partition(" ")
+            versions.setdefault(name, set()).update(vals.split("/"))
+    return ", ".join(f"{n} {'/'.join(sorted(v))}" for n, v in sorted(versions.items())) or "not logged"
 
-    rows: list[tuple[str, Callable[[Study], str]]] = [
-        ("kind", lambda s: s.kind),
-        ("profile", lambda s: s.profile),
-        ("parent run", lambda s: f"`{s.source_run_id}`"),
-        ("git commit", _commits),
-        ("machine", _machine),
-        ("software", _software),
-        ("seeds", _seeds),
-        ("rollouts per seed", _rollouts_per_seed),
-        ("pooled rollouts per cell", pooled),
-        ("runs", _runs),
-        ("study wall time", lambda s: duration(s.parent.get("metrics.time/study_seconds"))),
-        ("dates (UTC)", lambda s: f"{_when(s.parent.get('start_time'))} – {_when(s.parent.get('end_time'))}"),
-    ]
-    return Table("provenance", "Studies used", ["", *[s.name for s in studies]],
-                 [[label, *(f(s) for s in studies)] for label, f in rows],
-                 ["study wall time: metric time/study_seconds of the study's parent run (the last session "
-                  "of a resumed study); dates: start and end of the parent run.",
-                  "machine: what the runs logged; software: the package versions the runs logged."])
+
+def provenance_table(studies: list[Study]) -> Table:
+    """One row per study: its kind, parent run, the commits it ran at, its dates and wall time, its runs and seeds; the
+    machines and software the runs logged, merged over the studies, in the notes."""
+    rows = [[s.name, s.kind, f"`{s.source_run_id}`", _commits(s),
+             f"{_when(s.parent.get('start_time'))} – {_when(s.parent.get('end_time'))}",
+             duration(s.parent.get("metrics.time/study_seconds")), _runs(s), _seeds(s)] for s in studies]
+    machines = sorted({_machine(s) for s in studies})
+    return Table("provenance", "Studies used", ["study", "kind", "parent run", "commits", "dates (UTC)", "wall time",
+                                                "runs", "seeds"], rows,
+                 ["parent run: its id in the store the study ran in; commits: the parent run's first, then any "
+                  "other the runs logged (a study resumed or extended at a later commit); dates: start and end of "
+                  "the parent run; wall time: metric time/study_seconds of the parent run (the last session of a "
+                  "resumed study).",
+                  f"machines the runs logged: {' | '.join(machines)}.",
+                  f"software the runs logged: {_software_of(studies)}."])

@@ -78,3 +78,13 @@ def select_studies(selection: Selection, ablation: str | None,
             if isinstance(task, str) and task not in by_task:
                 by_task[task] = selection.load(row)
     return abl, [by_task[t] for t in sorted(by_task)]
+
+
+def headline_study(study: Study, what: str) -> Study:
+    """`study` for a headline table (`what`: the placeholder), unless its runs were evaluated on the validation
+    episodes (Study.split): those are where protocol choices are made, so a headline number never comes from them
+    (StoreError naming the study; a comparison or lever table may still quote it, labelled)."""
+    if study.split == "validation":
+        raise StoreError(f"{what}: study {study.name!r} was evaluated on the validation episodes (eval.split = "
+                         "validation); a headline table reads test episodes only")
+    return study

@@ -5,10 +5,12 @@ before any study is read so that a typo is one line naming it (with its line), n
     {{ figure("NAME") }}  {{ sweep_table("TASK") }}  {{ sweep_figure("TASK") }}  {{ sweep_figure("TASK", "NAME") }}
     {{ data_scaling("TASK", "STUDY", "STUDY", ...) }}  {{ lever("TASK", "STUDY", "STUDY", ...) }}
     {{ goal_switch("TASK", "STUDY", "STUDY", ...) }}  {{ stacking("TASK", "STUDY", "STUDY", ...) }}
-    {{ pick_place_failures("TASK", "STUDY", "STUDY", ...) }}
+    {{ pick_place_failures("TASK", "STUDY", "STUDY", ...) }}  {{ placement("TASK", "STUDY", "STUDY", ...) }}
     {{ comparisons("TASK", "STUDY", ...) }}  {{ compare("EVAL_TASK", "ROW", "ROW", ...) }}
     {{ difference("EVAL_TASK", "ROW", "ROW") }}  {{ rate("EVAL_TASK", "ROW") }}
     (a ROW is STUDY/VARIANT[+VARIANT...]: reports.results.comparisons)
+    {{ table_one("TASK=STUDY", ...) }}  then {{ claims }}  {{ headline_train_time }}  (from its sources)
+    {{ notebook("TOPIC") }}  (a link to a notebook page, rendered from its own template: reports.results.pages)
 
 The ablation tables and figures take an optional study="NAME" (a study_name or parent run id), e.g.
 {{ success_table(study="multimodal") }} or {{ figure("tip_paths", study="multimodal") }}; without it they show
@@ -17,16 +19,21 @@ the --ablation study. The names of the tables and figures are the caller's regis
 
 from __future__ import annotations
 
+import re
 from collections.abc import Collection
 from dataclasses import dataclass
 
 from jinja2 import Environment, StrictUndefined, TemplateSyntaxError, nodes
 
 FIXED = ("provenance", "command")
+# placeholders without arguments that read the sources of the template's one {{ table_one("TASK=STUDY", ...) }}
+# (Table I: each training task's cells from the study named for it; reports.study_report.table_one)
+HEADLINE = ("claims", "headline_train_time")
+SOURCE_SEPARATOR = "="
 # placeholders whose arguments are a training task, then the studies (reports.results.across.ACROSS:
 # reports.analyses.data_scaling, reports.analyses.levers, reports.analyses.goal_switch, reports.analyses.stacking,
-# reports.analyses.pick_place_failures)
-MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking", "pick_place_failures", "comparisons")
+# reports.analyses.pick_place_failures, reports.analyses.placement)
+MULTI_STUDY = ("data_scaling", "lever", "goal_switch", "stacking", "pick_place_failures", "placement", "comparisons")
 # placeholders whose arguments are an evaluated task, then pairs of rows STUDY/VARIANT[+VARIANT...]
 # (reports.results.comparisons)
 ROW_PAIRS = ("compare", "difference")
@@ -34,7 +41,7 @@ ROW_KINDS = (*ROW_PAIRS, "rate")  # placeholders whose arguments are an evaluate
 ROW_SEPARATOR = "/"
 # name -> (min, max) arguments
 WITH_ARG = {"figure": (1, 1), "sweep_table": (1, 1), "sweep_figure": (1, 2), **{k: (2, 12) for k in MULTI_STUDY},
-            "compare": (3, 21), "difference": (3, 3), "rate": (2, 2)}
+            "compare": (3, 21), "difference": (3, 3), "rate": (2, 2), "table_one": (1, 8), "notebook": (1, 1)}
 SWEEP_FIGURES = ("sweep_history", "sweep_params", "sweep_intermediate", "sweep_importance")
 STUDY = "study"  # the keyword that picks an ablation-kind placeholder's study
 
@@ -68,6 +75,8 @@ class Placeholder:
         else its study="NAME" if any."""
         if self.kind in MULTI_STUDY:
             return self.args[1:]
+        if self.kind == "table_one":
+            return tuple(dict.fromkeys(a.partition(SOURCE_SEPARATOR)[2] for a in self.args))
         if self.kind in ROW_KINDS:
             return tuple(dict.fromkeys(row.rpartition(ROW_SEPARATOR)[0] for row in self.args[1:]))
         return () if self.study is None else (self.study,)
@@ -90,12 +99,13 @@ class Vocabulary:
 
     @property
     def known(self) -> str:
-        return ", ".join([*(f"{{{{ {k} }}}}" for k in (*FIXED, *self.tables)), '{{ figure("NAME") }}',
+        return ", ".join([*(f"{{{{ {k} }}}}" for k in (*FIXED, *HEADLINE, *self.tables)), '{{ figure("NAME") }}',
                           '{{ sweep_table("TASK") }}', '{{ sweep_figure("TASK"[, "NAME"]) }}',
                           *(f'{{{{ {k}("TASK", "STUDY", ...) }}}}' for k in MULTI_STUDY),
                           '{{ compare("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT", ...) }}',
                           '{{ difference("EVAL_TASK", "STUDY/VARIANT", "STUDY/VARIANT") }}',
-                          '{{ rate("EVAL_TASK", "STUDY/VARIANT") }}'])
+                          '{{ rate("EVAL_TASK", "STUDY/VARIANT") }}', '{{ table_one("TASK=STUDY", ...) }}',
+                          '{{ notebook("TOPIC") }}'])
 
 
 def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
@@ -123,6 +133,13 @@ def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
         raise ResultsError(f"{ph}: {name} takes an evaluated task, then pairs of rows STUDY{ROW_SEPARATOR}VARIANT")
     if name == "rate" and ROW_SEPARATOR not in ph.args[1].strip(ROW_SEPARATOR):
         raise ResultsError(f"{ph}: rate takes an evaluated task, then a row STUDY{ROW_SEPARATOR}VARIANT")
+    if name == "table_one":
+        tasks = [a.partition(SOURCE_SEPARATOR)[0] for a in ph.args]
+        if not all(t and s for t, _, s in (a.partition(SOURCE_SEPARATOR) for a in ph.args)) or \
+                len(set(tasks)) < len(tasks):
+            raise ResultsError(f"{ph}: table_one takes TASK{SOURCE_SEPARATOR}STUDY, one per training task")
+    if name == "notebook" and not re.fullmatch(r"[a-z0-9]+(-[a-z0-9]+)*", ph.arg):
+        raise ResultsError(f"{ph}: a notebook topic is lower-case words joined by '-', e.g. \"data-scaling\"")
     if name == "sweep_figure" and len(ph.args) == 2 and ph.args[1] not in SWEEP_FIGURES:
         raise ResultsError(f"unknown sweep figure {ph.args[1]!r} in {ph}; known: {', '.join(SWEEP_FIGURES)}")
     return ph
@@ -144,7 +161,7 @@ def parse(text: str, vocab: Vocabulary) -> list[Placeholder]:
             if node.name in WITH_ARG:
                 raise ResultsError(f"{{{{ {node.name} }}}} (line {node.lineno}) needs its argument: "
                                    f"{{{{ {node.name}(\"...\") }}}}")
-            if node.name not in FIXED and node.name not in vocab.tables:
+            if node.name not in (*FIXED, *HEADLINE) and node.name not in vocab.tables:
                 raise ResultsError(f"unknown placeholder {{{{ {node.name} }}}} (line {node.lineno}); known: "
                                    f"{vocab.known}")
             found.append(Placeholder(node.name, (), node.lineno))

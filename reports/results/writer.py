@@ -18,8 +18,13 @@ have been added to the store; it names the store relative to the working directo
 exports folder) or by $MLFLOW_TRACKING_URI (a server), never by a path of this machine.
 
 Placeholders of the template:
-    {{ provenance }}         per study used: name, kind, profile, git commit, machine/software, seeds,
-                             rollouts per seed, pooled rollouts per cell, study wall time, dates
+    {{ table_one("TASK=STUDY", ...) }}  Table I with its bar figure, each training task's cells from the study named
+                             for it (reports.study_report.table_one); {{ claims }}: the paper's comparisons on those
+                             cells (reports.results.paper_claims); {{ headline_train_time }}: their training time
+    {{ notebook("TOPIC") }}  a link to the notebook page notebook/TOPIC.md, rendered with RESULTS.md from
+                             notebook/TOPIC.template.md beside the template (reports.results.pages)
+    {{ provenance }}         one row per study used, by RESULTS.md and its notebook pages: kind, parent run,
+                             commits, dates, wall time, runs, seeds; the machines and software the runs logged
     {{ command }}            the exact regeneration command (a fenced code block)
     {{ success_table }}      success rates (per seed, seed-level and Wilson intervals) beside the paper's Table I
     {{ circle_table }}       circle drawing radial errors beside the paper's
@@ -42,6 +47,9 @@ Placeholders of the template:
     {{ pick_place_failures("TASK", "STUDY", ...) }}  the stage each pick-and-place and changing-goal
                              pick-and-place episode of TASK's models fails at, per study and variant: a table and a
                              figure (reports.analyses.pick_place_failures)
+    {{ placement("TASK", "STUDY", ...) }}  pick-and-place success judged on the block (placed) beside the strict
+                             criterion (the last grip command open too), per study and variant: a table
+                             (reports.analyses.placement)
     {{ comparisons("TASK", "STUDY", ...) }}  the paper's comparisons of the variants within each study, and each
                              study against the first per variant: differences, intervals, p
                              (reports.results.comparisons)
@@ -53,7 +61,8 @@ New ablation-kind placeholders are one entry in ABLATION_TABLES (name -> builder
 Table or DataFrame; {{ name }}) or ABLATION_FIGURES (name -> builder(results, study, folder) -> FigureResult;
 {{ figure("name") }}).
 
-Figures are re-saved as small PNGs (reports.results.pngs) under --figures-dir and linked relative to --results-out.
+Figures are re-saved as small PNGs (reports.results.pngs) under --figures-dir and linked relative to the page that
+shows them.
 An unknown placeholder or a missing study or figure name is an error that names it (nothing is written); a
 figure the data cannot draw becomes a visible "figure unavailable" line. The output depends on the store only
 (no timestamps other than the studies' own).
@@ -63,7 +72,6 @@ from __future__ import annotations
 
 import logging
 import os
-import shlex
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -74,24 +82,30 @@ import pandas as pd
 from envs.fileio import atomic_write_text
 from reports import paper
 from reports.analyses import mode_use, multimodal, success_vs_iterations
-from reports.data.store import DEFAULT_TRACKING_URI, Store, StoreError, Study, file_safe
+from reports.data.store import Store, StoreError, Study, file_safe
 from reports.plotting import FigureResult, plt
-from reports.results import comparisons
+from reports.results import comparisons, headline, pages
 from reports.results.across import ACROSS, at_iteration, whole_study
+from reports.results.command import portable_uri, regeneration_command
+from reports.results.pages import Page
 from reports.results.pngs import MAX_FIGURE_WIDTH, small_png
 from reports.results.provenance import provenance_table
-from reports.results.selection import Selection, select_studies
-from reports.results.template import ROW_KINDS, SWEEP_FIGURES, Placeholder, ResultsError, Vocabulary, parse, render
+from reports.results.selection import Selection, headline_study, select_studies
+from reports.results.template import (
+    HEADLINE,
+    ROW_KINDS,
+    SWEEP_FIGURES,
+    Placeholder,
+    ResultsError,
+    Vocabulary,
+    parse,
+    render,
+)
 from reports.study_report import ablation_figures, sweep_summary, tables, trajectories
 from reports.study_report.sweep_summary import sweep_task
 from reports.study_report.tables import Table
 
 log = logging.getLogger(__name__)
-
-
-DEFAULT_TEMPLATE = Path("reports/RESULTS.template.md")
-DEFAULT_RESULTS = Path("reports/RESULTS.md")
-DEFAULT_FIGURES = Path("reports/figures")
 
 
 @dataclass
@@ -102,6 +116,9 @@ class Results:
     figures_dir: Path
     command: str
     named: dict[str, Study] = field(default_factory=dict)  # study="NAME" of the template -> its study
+    pages: dict[str, Page] = field(default_factory=dict)  # {{ notebook("TOPIC") }}: TOPIC -> its page
+    context: list[Placeholder] = field(default_factory=list)  # those of the template and its pages (provenance)
+    page_out: Path | None = None  # the file being rendered, when not results_out: figure links are relative to it
     _cache: dict = field(default_factory=dict)
     _tmp: tempfile.TemporaryDirectory = field(
         default_factory=lambda: tempfile.TemporaryDirectory(prefix="results-"), repr=False)
@@ -142,6 +159,8 @@ class Results:
                 self.need_ablation(ph)
             elif ph.kind.startswith("sweep_"):
                 self.sweep_of(ph)
+            elif ph.kind in ("table_one", *HEADLINE):
+                headline.check(ph, self.context or placeholders, self.named)
 
     # ------------------------------------------------------------------- tables
     def summary(self, name: str, study: Study) -> pd.DataFrame:
@@ -151,9 +170,6 @@ class Results:
                      "train": tables.train_time_summary}[name]
             self._cache[key] = build(study)
         return self._cache[key]
-
-    def _success_of(self, study: Study) -> pd.DataFrame | None:
-        return self.summary("success", study) if study.kind == "ablation" else None
 
     # ------------------------------------------------------------------ figures
     def figure(self, study: Study, name: str, out_name: str, build: Callable[[Path], FigureResult],
@@ -173,7 +189,7 @@ class Results:
             dst.unlink(missing_ok=True)  # our own output name: no stale figure beside the gap
             return f"> **figure unavailable: {name}** ({label}): {res.gap or 'no PNG written'}\n"
         small_png(png, dst)
-        link = Path(os.path.relpath(dst, self.results_out.parent)).as_posix()
+        link = Path(os.path.relpath(dst, (self.page_out or self.results_out).parent)).as_posix()
         text = f"![{res.title} ({label})]({link})\n"
         if res.partial:
             text += f"\n*Panels without data: {'; '.join(res.partial)}.*\n"
@@ -182,7 +198,7 @@ class Results:
     def ablation_figure(self, ph: Placeholder) -> str:
         study = self.need_ablation(ph)
         build = ABLATION_FIGURES[ph.arg]
-        out_name = ph.arg if ph.study is None else f"{study.slug}_{ph.arg}"  # another study: its own file
+        out_name = ph.arg if ph.study is None else f"{file_safe(study.name)}_{ph.arg}"  # another study: its own file
         return self.figure(study, ph.arg, out_name, lambda folder: build(self, study, folder))
 
     def sweep_figures(self, ph: Placeholder) -> str:
@@ -226,7 +242,7 @@ class Results:
     def render_one(self, ph: Placeholder, placeholders: list[Placeholder]) -> str:
         if ph.kind == "provenance":
             _, abl, swp = self.used(placeholders)
-            return provenance_table([*abl, *swp], self._success_of).to_markdown()
+            return provenance_table([*sorted(abl, key=lambda s: s.name), *swp]).to_markdown(heading=False)
         if ph.kind == "command":
             return f"```sh\n{self.command}\n```\n"
         if ph.kind in ABLATION_TABLES:
@@ -239,16 +255,23 @@ class Results:
             return self.across(ph)
         if ph.kind in ROW_KINDS:
             return self.comparison(ph)
+        if ph.kind in ("table_one", *HEADLINE):
+            return headline.render(self, ph, placeholders)
+        if ph.kind == "notebook":
+            return pages.link(self.pages[ph.arg], self.results_out)
         return self.ablation_figure(ph)
 
     def render(self, template: str) -> str:
+        """The template rendered; provenance, the command and Table I's sources read self.context (the template's
+        placeholders and its notebook pages') when set."""
         placeholders = parse_template(template)
         self.check(placeholders)
+        context = self.context or placeholders
         values: dict[Placeholder, str] = {}
         done: dict[tuple, str] = {}  # a placeholder used twice is drawn once
         for ph in placeholders:
             if ph.key not in done:
-                done[ph.key] = self.render_one(ph, placeholders).rstrip("\n")
+                done[ph.key] = self.render_one(ph, context).rstrip("\n")
             values[ph] = done[ph.key]
         return render(template, values)
 
@@ -263,7 +286,8 @@ def markdown(table: Table | pd.DataFrame | str) -> str:
 
 # The ablation-kind placeholders: {{ NAME }} / {{ NAME(study="...") }} and {{ figure("NAME"[, study="..."]) }}.
 ABLATION_TABLES: dict[str, Callable[[Results, Study], Table | pd.DataFrame | str]] = {
-    "success_table": lambda r, s: tables.paper_success_table(r.summary("success", s), s),
+    "success_table": lambda r, s: tables.paper_success_table(r.summary("success", headline_study(s, "success_table")),
+                                                             s),
     "circle_table": lambda r, s: tables.circle_table(r.summary("circle", s), s),
     "train_time_table": lambda r, s: tables.train_time_table(r.summary("train", s), s),
     "budget_table": lambda r, s: tables.budget_table(s),
@@ -295,46 +319,6 @@ def parse_template(text: str) -> list[Placeholder]:
     return parse(text, Vocabulary(ABLATION_TABLES, ABLATION_FIGURES))
 
 
-def portable_uri(uri: str | None, cwd: Path | None = None) -> str | None:
-    """The store as the regeneration command names it: a SQLite file relative to the working directory, None for
-    the default store, '$MLFLOW_TRACKING_URI' for anything else (a server URL may hold a password)."""
-    if uri is None:
-        return None
-    if not uri.startswith("sqlite:///"):
-        return "$MLFLOW_TRACKING_URI"
-    path = Path(uri.removeprefix("sqlite:///"))
-    if path.is_absolute():
-        path = Path(os.path.relpath(path, cwd or Path.cwd()))
-    rel = f"sqlite:///{path.as_posix()}"
-    return None if rel == DEFAULT_TRACKING_URI else rel
-
-
-def _portable_path(value: Path) -> str:
-    return Path(os.path.relpath(value)).as_posix() if Path(value).is_absolute() else Path(value).as_posix()
-
-
-def regeneration_command(ablation: Study | None, sweeps_used: list[Study], template: Path, results_out: Path,
-                         figures_dir: Path, tracking_uri: str | None, exports: Path | None = None) -> str:
-    """`nox -s report -- --results ...` with the studies pinned by name (non-default paths and the store, in
-    portable_uri's form, or the exports folder, kept)."""
-    args = ["nox", "-s", "report", "--", "--results"]
-    uri = None if exports else portable_uri(tracking_uri)
-    if uri:
-        args += ["--tracking-uri", uri]
-    if exports:
-        args += ["--exports", _portable_path(exports)]
-    if ablation is not None:
-        args += ["--ablation", ablation.name]
-    for s in sweeps_used:
-        args += ["--sweep", s.name]
-    for flag, value, default in (("--template", template, DEFAULT_TEMPLATE), ("--results-out", results_out,
-                                 DEFAULT_RESULTS), ("--figures-dir", figures_dir, DEFAULT_FIGURES)):
-        if Path(value) != default:
-            args += [flag, _portable_path(value)]
-    # the variable is meant to be expanded by the reader's shell: unquote it
-    return shlex.join(args).replace("'$MLFLOW_TRACKING_URI'", '"$MLFLOW_TRACKING_URI"')
-
-
 NAMED_KINDS = ("ablation", "milestones")  # what study="NAME" may name (a milestones study: its runs are cells too)
 
 
@@ -361,25 +345,38 @@ def _named_studies(selection: Selection, placeholders: list[Placeholder]) -> dic
 def write_results(store: Store, template: Path, results_out: Path, figures_dir: Path,
                   ablation: str | None = None, sweep_ids: list[str] | None = None,
                   exports: Path | None = None) -> Path:
-    """Render the template from the store into results_out (written only once everything rendered); `exports`:
-    the folder the store was imported from (named in the regeneration command instead of the store)."""
+    """Render the template, and the notebook pages it links (reports.results.pages), from the store into
+    results_out and the notebook folder beside it, all written only once everything rendered; `exports`: the
+    folder the store was imported from (named in the regeneration command instead of the store)."""
     try:
         text = template.read_text()
     except OSError as exc:
         raise ResultsError(f"cannot read the template {template}: {exc.strerror or exc}") from None
     placeholders = parse_template(text)  # a template error before the store is read
+    linked = pages.notebook_pages(template, results_out, placeholders, parse_template)
+    context = [*placeholders, *(p for page in linked.values() for p in page.placeholders)]
     selection = Selection(store)
     abl, swp = select_studies(selection, ablation, sweep_ids)
-    results = Results(abl, swp, results_out, figures_dir, command="", named=_named_studies(selection, placeholders))
+    named = _named_studies(selection, placeholders)
+    for page in linked.values():
+        named.update(pages.in_page(page.template, _named_studies, selection, page.placeholders))
+    results = Results(abl, swp, results_out, figures_dir, command="", named=named, pages=linked, context=context)
     results.check(placeholders)
-    default, _, used_swp = results.used(placeholders)
+    for page in linked.values():
+        pages.in_page(page.template, results.check, page.placeholders)
+    default, _, used_swp = results.used(context)
     results.command = regeneration_command(default, used_swp, template, results_out, figures_dir, store.uri,
                                            exports)
-    out = results.render(text)
-    try:
-        atomic_write_text(results_out, out)
-    except OSError as exc:
-        raise ResultsError(f"cannot write {results_out}: {exc.strerror or exc}") from None
+    outputs = {results_out: results.render(text)}
+    for page in linked.values():
+        results.page_out = page.out
+        outputs[page.out] = pages.in_page(page.template, results.render, page.text)
+    for path, out in outputs.items():
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(path, out)
+        except OSError as exc:
+            raise ResultsError(f"cannot write {path}: {exc.strerror or exc}") from None
     return results_out
 
 

@@ -1,5 +1,6 @@
 """index.html of a study's report and the top-level index of studies, rendered with Jinja2
-(reports/study_report/templates/*.html.j2). A study's page opens with its headline table and figures; the catch-all
+(reports/study_report/templates/*.html.j2). A study's page reads in RESULTS.md's order: Table I and its figure
+first, then the paper's comparisons, the circles, the compute, each table followed by its figures; the catch-all
 metric dump comes last, folded."""
 
 from __future__ import annotations
@@ -17,13 +18,21 @@ from reports.study_report.tables import TABLE_CSS, Table
 CSS = TABLE_CSS + ("img{max-width:100%;border:1px solid #ddd;margin:4px 0}.gapbox{color:#900}"
                    "section{margin-bottom:2em}code{background:#f4f4f4}details{margin:1em 0}"
                    "summary{cursor:pointer;font-weight:bold}.lead{color:#444}")
-# Figures shown right under the headline table, in this order (those the study drew).
-HEADLINE_FIGURES = ("success_bars", "circles", "compute_time", "sweep_history")
+# The figures shown right under each table, in this order (those the study drew); the others follow the tables.
+FIGURES_OF = {"table_one": ("table_one",), "circle_table": ("circles",),
+              "train_time_table": ("compute_time", "train_time", "training_curves"),
+              "success_table": ("success_bars", "tip_paths", "changing_goal")}
 FOLDED_TABLES = ("metrics_table",)  # the dump of every logged metric: last and folded
 
 _ENV = Environment(loader=FileSystemLoader(Path(__file__).parent / "templates"),
                    autoescape=select_autoescape(["html", "j2"]), undefined=StrictUndefined,
                    keep_trailing_newline=True)
+
+
+@dataclass
+class _Section:
+    table: _TableView
+    figures: list[FigureResult]
 
 
 @dataclass
@@ -70,17 +79,17 @@ def study_index(study: Study, folder: Path, tables: list[Table], figures: list[F
     if study.kind in ("smoothing", "idm"):  # one run, no children: its own status and plan source
         info += [("run status", study.parent.get("status") or "?"),
                  ("skeletons", study.parent.get("tags.skeleton_source") or "?")]
-    main = [t for t in tables if t.name not in FOLDED_TABLES]
     folded = [t for t in tables if t.name in FOLDED_TABLES]
-    by_name = {f.name: f for f in figures}
-    top = [by_name[n] for n in HEADLINE_FIGURES if n in by_name and not by_name[n].gap] \
-        or [f for f in figures if not f.gap][:1]
+    drawn = {f.name: f for f in figures if not f.gap}
+    sections = [_Section(_view(t, folder), [drawn.pop(n) for n in FIGURES_OF.get(t.name, ()) if n in drawn])
+                for t in tables if t.name not in FOLDED_TABLES]
+    top = [] if sections and sections[0].figures else list(drawn.values())[:1]  # a page without Table I: one figure
+    rest = [f for f in drawn.values() if f not in top]
     html = _ENV.get_template("study_index.html.j2").render(
         css=CSS, study=study, n_children=len(ch), n_finished=int((ch["status"] == "FINISHED").sum()),
-        n_failed=len(failed), info=info, seconds=seconds,
-        headline=_view(main[0], folder) if main else None, tables=[_view(t, folder) for t in main[1:]],
-        folded=[_view(t, folder) for t in folded], headline_figures=top,
-        figures=[f for f in figures if f not in top], gaps=_gaps(figures, failed), links=_links, figure=_figure)
+        n_failed=len(failed), info=info, seconds=seconds, headline=sections[0] if sections else None,
+        sections=sections[1:], folded=[_view(t, folder) for t in folded], headline_figures=top, figures=rest,
+        gaps=_gaps(figures, failed), links=_links, figure=_figure)
     path = folder / "index.html"
     path.write_text(html)
     return path

@@ -34,12 +34,14 @@ class Table:
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows, columns=self.columns)
 
-    def to_markdown(self) -> str:
+    def to_markdown(self, heading: bool = True) -> str:
+        """The table under a ### heading of its title (or without it), its notes as a list under it."""
         def esc(s: str) -> str:  # a pipe inside an entry would end it
             return str(s).replace("|", "\\|")
         frame = self.frame.map(esc).rename(columns=esc)
         # every entry is already text: numparse would reformat "0.0100" as "0.01"
-        lines = [f"### {self.title}", "", frame.to_markdown(index=False, disable_numparse=True)]
+        lines = [*([f"### {self.title}", ""] if heading else []),
+                 frame.to_markdown(index=False, disable_numparse=True)]
         if self.notes:
             lines += [""] + [f"- {n}" for n in self.notes]
         return "\n".join(lines) + "\n"
@@ -133,6 +135,10 @@ def success_summary(study: Study, tasks: list[str] | None = None) -> pd.DataFram
     return agg
 
 
+VALIDATION_NOTE = ("Validation episodes (eval.split = validation): the episodes protocol choices are made on, "
+                   "disjoint from the headline's test episodes; not a headline number.")
+
+
 def paper_success_table(agg: pd.DataFrame, study: Study) -> Table:
     """experiments.stats.success_table (the one success table, also printed at the end of a study) with the
     paper's Table I beside each row, gaps marked and a note per missing seed."""
@@ -149,9 +155,13 @@ def paper_success_table(agg: pd.DataFrame, study: Study) -> Table:
              "† some seeds missing or failed (statistics over the rest); gap: no finished run logged the cell."]
     notes += [f"{paper.variant_label(r.variant)} / {paper.task_label(r.eval_task)}: {r.note}"
               for r in agg.itertuples() if r.note]
+    if study.split == "validation":  # its own report may show it; a headline table refuses it (reports.results)
+        notes.insert(0, VALIDATION_NOTE)
     data = agg.assign(seed_rates=[" ".join(f"{s}:{v:.4g}" for s, v in d.items()) for d in agg["seed_rates"]]) \
         if not agg.empty else agg
-    return Table("success_table", "Success rate (Table I, extended)", columns, rows, notes, data)
+    title = f"Success rate (Table I, extended) ({study.name})" + (" [validation episodes]" if study.split ==
+                                                                     "validation" else "")
+    return Table("success_table", title, columns, rows, notes, data)
 
 
 # -------------------------------------------------------------------------------------------- circle
@@ -212,7 +222,8 @@ def circle_table(summary: pd.DataFrame, study: Study) -> Table:
     if summary.empty:
         rows = [[GAP, "–", GAP, GAP, "0", "–", "–"]]
         notes.insert(0, "gap: no run of this study logged circle/r{R}/* metrics.")
-    return Table("circle_table", "Circle drawing: radial error per radius", columns, rows, notes, summary)
+    return Table("circle_table", f"Circle drawing: radial error per radius ({study.name})", columns, rows, notes,
+                 summary)
 
 
 # ------------------------------------------------------------------------------------------- timings
@@ -243,7 +254,8 @@ def train_time_summary(study: Study) -> pd.DataFrame:
     return out
 
 
-def _train_time(hit: pd.Series) -> str:
+def train_time_cell(hit: pd.Series) -> str:
+    """One (task, variant)'s training wall time as the tables print it."""
     if hit["pack"]:
         return f"{hit['mean']:,.0f} (pack of {int(hit['count'])})"
     return f"{hit['mean']:,.0f} ± {hit['std']:,.0f} ({int(hit['count'])} runs)"
@@ -257,13 +269,17 @@ def train_time_table(summary: pd.DataFrame, study: Study) -> Table:
         row = [paper.variant_label(v)]
         for t in tasks:
             hit = summary[(summary["task"] == t) & (summary["variant"] == v)] if not summary.empty else summary
-            row.append(_train_time(hit.iloc[0]) if len(hit) else GAP)
+            row.append(train_time_cell(hit.iloc[0]) if len(hit) else GAP)
         rows.append(row)
-    notes = ["Training wall time of finished runs (metric time/train_seconds). 'pack of K': the K seeds trained "
-             "together as one packed model in one process, and the number is that pack's wall time, once (not a "
-             "mean over seeds); otherwise mean ± std over separately trained runs. The runs log wall time only, "
-             "so a seed's CPU time is not known: the seeds of a pack share one process and one core."]
-    return Table("train_time_table", "Training time per variant and task", columns, rows, notes, summary)
+    return Table("train_time_table", f"Training time per variant and task ({study.name})", columns, rows,
+                 [TRAIN_TIME_NOTE], summary)
+
+
+TRAIN_TIME_NOTE = ("Training wall time of finished runs (metric time/train_seconds), in seconds. 'pack of K': the K "
+                   "seeds trained together as one packed model in one process, and the number is that pack's wall "
+                   "time, once (not a mean over seeds); otherwise mean ± std over separately trained runs. The runs "
+                   "log wall time only, so a seed's CPU time is not known: the seeds of a pack share one process and "
+                   "one core.")
 
 
 def generic_metrics_table(study: Study) -> Table:
@@ -310,5 +326,5 @@ def budget_table(study: Study) -> Table:
     notes = ["reached: iterations trained per seed (seed 0 / 1 / ...) and the run's status (in an export: its status "
              "when exported); a running or killed run resumes from its last checkpoint when the study's command is "
              "run again on the store that holds its checkpoints (an export holds none)."]
-    return Table("budget_table", "Training iterations per cell", ["task", "variant", "planned", "reached per seed"],
-                 rows, notes)
+    return Table("budget_table", f"Training iterations per cell ({study.name})",
+                 ["task", "variant", "planned", "reached per seed"], rows, notes)

@@ -1,7 +1,7 @@
 """The pages a researcher opens, loaded in headless Chromium: the MLflow runs page shows the
 study's nested cell runs, a cell's page shows its success metric and its logged model, the
 dashboard lists the sweep, and the report's figures load. With ACRMDN_SCREENSHOTS set, each
-page is also saved as a PNG there (docs/screenshots in the README)."""
+page is also saved as a PNG there (docs/screenshots, shown in docs/usage.md and docs/testing.md)."""
 
 from __future__ import annotations
 
