@@ -689,9 +689,10 @@ def test_comparisons_pair_the_seeds_that_saw_the_same_episodes():
     assert (paired["test"], paired["n"]) == ("paired", 3)
     assert paired["difference"] == pytest.approx(0.2) and paired["p"] == pytest.approx(0.25)
     assert comparisons.sentence(paired) == "+20 points (95 % interval -9 to +45; paired, 3 seeds; p = 0.25)"
-    # a target sentence quotes the row's seed-level interval: mean 80 %, t-interval 80 +- 4.30 x 10 / sqrt(3)
+    # a target sentence quotes the row's seed-level interval (experiments.stats.rate_interval): mean 80 %; the
+    # t-interval over the rates alone, 80 +- 4.30 x 10 / sqrt(3), would start at 55; the logit part reaches 48
     assert comparisons.rate_sentence(named, "reacher", "a/ac-lstm") == (
-        "80 % (seed-level 95 % interval 55–100%; 3 seeds)")
+        "80 % (seed-level 95 % interval 48–100%; 3 seeds)")
     other_episodes = comparisons.between(named, "reacher", "a/lstm", "b/lstm")  # same seeds, other episodes
     assert (other_episodes["test"], other_episodes["n"]) == ("groups", "3+3")
     assert comparisons.between(named, "reacher", "a/ac-lstm+lstm", "b/lstm")["n"] == "6+3"  # pooled variants

@@ -204,15 +204,15 @@ def training_bench(size: str, rounds: int, reps: int, peak: dict[str, float]) ->
     floor = {dt: {s: flops[s]["total"] / (peak[dt] * 1e9) for s in FLOOR_SCHEDULES} for dt in peak}
     return {
         "size": size, "state_dim": task.layout.dim, **{k: spec[k] for k in ("hidden", "mixtures", "batch", "steps")},
-        "ms_per_iter": {k: round(v * 1e3, 2) for k, v in med.items() if not k.startswith("products")},
-        "ms_per_model_iter": {k: round(per_model[k] * 1e3, 2) for k in FLOOR_CASES},
+        "ms_per_iter": {k: _digits(v * 1e3) for k, v in med.items() if not k.startswith("products")},
+        "ms_per_model_iter": {k: _digits(per_model[k] * 1e3) for k in FLOOR_CASES},
         "gflop_per_model_iter": {s: {part: _digits(n / 1e9) for part, n in f.items()} for s, f in flops.items()},
         "floor_ms_per_model_iter": {dt: {s: _digits(v * 1e3) for s, v in f.items()} for dt, f in floor.items()},
         # ms per model-iteration / (its FLOPs / the fp32 peak): 1 is every product at the core's best, nothing else
         "floor_ratio": {k: round(per_model[k] / floor["fp32"][_schedule(k)], 3) for k in FLOOR_CASES},
         # the iteration's own products replayed alone on warm operands (stm.speed.floor.replayer), per
         # model-iteration; the rate they reach; the iteration over them
-        "products_replayed_ms_per_model_iter": {k: round(per_model[f"products_{k}"] * 1e3, 2) for k in FLOOR_CASES},
+        "products_replayed_ms_per_model_iter": {k: _digits(per_model[f"products_{k}"] * 1e3) for k in FLOOR_CASES},
         "products_replayed_gflops": {k: round(product_flops(c) / med[f"products_{k}"] / 1e9, 1)
                                      for k, c in matmuls.items()},
         "products_ratio": {k: round(med[k] / med[f"products_{k}"], 3) for k in FLOOR_CASES},
@@ -220,7 +220,7 @@ def training_bench(size: str, rounds: int, reps: int, peak: dict[str, float]) ->
         # TrainConfig.matmul_dtype "bfloat16": the same iteration's ms over float32's, timed in the same rounds
         "bf16_over_fp32": {k: round(med[f"bf16_{k}"] / med[k], 3) for k in BF16_CASES},
         # with bf16 products, per model-iteration and over their floor (the FLOPs at the bf16 peak)
-        "bf16_ms_per_model_iter": {k: round(per_model[f"bf16_{k}"] * 1e3, 2) for k in BF16_CASES},
+        "bf16_ms_per_model_iter": {k: _digits(per_model[f"bf16_{k}"] * 1e3) for k in BF16_CASES},
         "bf16_floor_ratio": {k: round(per_model[f"bf16_{k}"] / floor["bf16"][_schedule(k)], 3) for k in BF16_CASES},
         "aten_calls_per_iter": {k: aten_calls(cases[k]) for k in ("tf", "tf_cpp", "ac_u5v5", "ac_u5v5_cpp")},
         "ratio_ac_u2v2_over_tf": round(med["ac_u2v2"] / med["tf"], 3),
