@@ -4,13 +4,11 @@ accepted value round-trips through the params logged to a real MLflow run."""
 
 from __future__ import annotations
 
-import contextlib
-import io
-import os
 import tempfile
 from pathlib import Path
 
 import pytest
+from cli_helpers import run_in_process
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -67,20 +65,7 @@ def store_dir():
 
 
 def _run_cli(argv: list[str], cwd: Path) -> tuple[int, str]:
-    from experiments.cli import main
-
-    err = io.StringIO()
-    old = os.getcwd()
-    os.chdir(cwd)
-    try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-            try:
-                code = main(argv)
-            except SystemExit as e:  # argparse usage errors
-                code = e.code
-    finally:
-        os.chdir(old)
-    return code, err.getvalue()
+    return run_in_process("experiments", argv, cwd)
 
 
 def _assert_rejected(argv: list[str], field: str, cwd: Path) -> None:

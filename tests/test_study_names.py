@@ -6,16 +6,14 @@ holds no trained study), so that the examples take seconds."""
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import io
 import json
 import logging
-import os
 import uuid
 from pathlib import Path
 
 import pytest
+from cli_helpers import run_in_process
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -158,29 +156,8 @@ def _own_output(rel: str, name: str) -> bool:
 def _run(module: str, argv: list[str], cwd: Path) -> tuple[int, list[str]]:
     """`python -m <module> ARGV` in this process, in `cwd`: exit code, stderr lines (log lines included, at the level
     the command logs at)."""
-    if module == "experiments":
-        from experiments.cli import main
-    else:
-        from reports.__main__ import main
-    err = io.StringIO()
-    handler = logging.StreamHandler(err)
-    root = logging.getLogger()
-    level = root.level
-    root.addHandler(handler)
-    root.setLevel(logging.INFO if module == "experiments" else logging.WARNING)
-    old = os.getcwd()
-    os.chdir(cwd)
-    try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-            try:
-                code = main(argv)
-            except SystemExit as exc:  # argparse
-                code = exc.code
-    finally:
-        os.chdir(old)
-        root.removeHandler(handler)
-        root.setLevel(level)
-    return code, [line for line in err.getvalue().splitlines() if line.strip()]
+    code, err = run_in_process(module, argv, cwd, logging.INFO if module == "experiments" else logging.WARNING)
+    return code, [line for line in err.splitlines() if line.strip()]
 
 
 text = st.text(alphabet=st.characters(codec="utf-8", exclude_categories=("Cs",), exclude_characters="\x00"),
