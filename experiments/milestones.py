@@ -25,6 +25,12 @@ unless --rollouts), final models included, as the study "<study>-milestones-vali
 split protocol choices are made on, never a headline table's (reports refuse it there). Its runs log
 eval.split = validation and every run of this command is tagged with its split.
 
+`--stack-restart {place_pose,start}` evaluates the same models (final ones included: nothing is copied) with
+eval.stack_restart set to that protocol between the blocks (envs/tasks/stack_protocol.py), on stacking alone, the
+one task it changes: the cells whose model serves stacking, as the study "<study>-milestones[...]-stack-<value>"
+(e.g. "<study>-milestones-validation-stack-start"), whose runs hold stacking's metrics only and log
+eval.stack_restart = value.
+
 Besides kept checkpoints, it evaluates the models a study export carries (reports.data.export `--with-models`:
 weights alone, artifacts weights_at/<iteration>/weights.pt), once the export is imported into a store: in a fresh
 clone, `python -m reports import reports/studies/NAME`, then this command, evaluates the study's models with the
@@ -40,11 +46,11 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from experiments.cell_run import CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR, WEIGHTS_DIR, WEIGHTS_NAME, setup_process
 from experiments.config_errors import ConfigError
-from experiments.eval_sweep_config import SPLITS, VALIDATION_ROLLOUTS
+from experiments.eval_sweep_config import SPLITS, VALIDATION_ROLLOUTS, StackRestart, evaluation_tasks
 from experiments.runtime.processes import add_device_option, add_threads_option, checked_device
 from experiments.runtime.study_names import check_study_name
 from experiments.runtime.tracking import (
@@ -67,6 +73,8 @@ from experiments.runtime.tracking import (
 from stm.config import FEEDBACKS
 
 log = logging.getLogger(__name__)
+STACK_RESTARTS: tuple[str, ...] = get_args(StackRestart)
+STACK_TASK = "stack"  # the one eval task eval.stack_restart changes (envs.tasks.stack.Stack.eval_options)
 
 
 class MilestoneError(Exception):
@@ -146,9 +154,9 @@ def _source_config(client: Client, run_id: str, work: Path) -> dict[str, Any]:
 
 def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None, level: int,
                        threads: int | None, feedback: str | None = None, device: str = "cpu",
-                       split: str = "test") -> tuple[str, str]:
+                       split: str = "test", stack_restart: str | None = None) -> tuple[str, str]:
     """Worker entry point: evaluate one kept checkpoint into its run, its rollouts on `device`, on the episodes of
-    `split`; (status, error)."""
+    `split` (with `stack_restart`: on stacking alone, under that protocol); (status, error)."""
     import numpy as np
 
     from experiments.evaluation import evaluate_model, rollout_arrays
@@ -164,12 +172,14 @@ def evaluate_milestone(uri: str, m: Milestone, run_id: str, rollouts: int | None
             work = Path(tmp)
             cfg = _source_config(client, m.source_run, work / "config")
             eval_cfg = dict(cfg["eval"], rollouts=rollouts or split_rollouts(split, cfg["eval"]["rollouts"]),
-                            feedback=feedback or cfg["eval"]["feedback"], split=split)
+                            feedback=feedback or cfg["eval"]["feedback"], split=split,
+                            **({"stack_restart": stack_restart} if stack_restart else {}))
+            tasks = [t for t in cfg["eval_tasks"] if not stack_restart or t == STACK_TASK]
             path = client.download_artifacts(m.source_run, m.model_artifact, str(work / "ckpt"))
             train = cfg["train"]
             start = time.perf_counter()
             set_tags(client, run_id, {"device": str(resolve_device(device))})
-            metrics, details = evaluate_model(load_model(Path(path), device), list(cfg["eval_tasks"]), eval_cfg,
+            metrics, details = evaluate_model(load_model(Path(path), device), tasks, eval_cfg,
                                               seed=int(cfg["seed"]), phi_mode=train.get("phi_mode"), timings=False,
                                               data=cfg.get("data"), train_feedback=train.get("feedback"),
                                               temperature=float(train.get("temperature", 1.0)))
@@ -206,9 +216,10 @@ def _copy_final(client: Client, m: Milestone, run_id: str) -> None:
     client.set_terminated(run_id, "FINISHED")
 
 
-def milestones_study_name(study: str, feedback: str | None = None, split: str = "test") -> str:
+def milestones_study_name(study: str, feedback: str | None = None, split: str = "test",
+                          stack_restart: str | None = None) -> str:
     return (f"{study}-milestones" + ("-validation" if split == "validation" else "")
-            + (f"-feedback-{feedback}" if feedback else ""))
+            + (f"-feedback-{feedback}" if feedback else "") + (f"-stack-{stack_restart}" if stack_restart else ""))
 
 
 def _cell_split(client: Client, m: Milestone) -> str:
@@ -223,16 +234,18 @@ def split_rollouts(split: str, cell_rollouts: int) -> int:
 
 
 def prepare(client: Client, study: str, profile: str, milestones: list[Milestone], rollouts: int | None,
-            feedback: str | None = None, split: str = "test") -> tuple[str, list[tuple[Milestone, str]], int]:
+            feedback: str | None = None, split: str = "test", stack_restart: str | None = None
+            ) -> tuple[str, list[tuple[Milestone, str]], int]:
     """The milestones study's parent run, (milestone, run id) still to evaluate, and how many are done."""
     experiment_id = get_or_create_experiment(client, MILESTONES)
-    name = milestones_study_name(study, feedback, split)
+    name = milestones_study_name(study, feedback, split, stack_restart)
     validation = split == "validation"
     parent_id = get_or_create_parent_run(client, experiment_id, name, {"kind": MILESTONES, "source_study": study,
                                                                        "profile": profile, "split": split})
     log_params(client, parent_id, {"source_study": study, "rollouts": rollouts or ("as the cells" if not validation
                                                                                    else VALIDATION_ROLLOUTS),
                                    **({"feedback": feedback} if feedback else {}),
+                                   **({"stack_restart": stack_restart} if stack_restart else {}),
                                    **({"split": split} if validation else {}), **provenance_params()})
     existing = {(r.data.tags.get("source_run"), r.data.tags.get("iteration")): r
                 for r in child_runs(client, experiment_id, parent_id)}
@@ -253,6 +266,7 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
                                         "milestone.rollouts": rollouts or ("as the cell" if not validation
                                                                            else VALIDATION_ROLLOUTS),
                                         **({"eval.feedback": feedback} if feedback else {}),
+                                        **({"eval.stack_restart": stack_restart} if stack_restart else {}),
                                         **({"eval.split": split} if validation else {})})
         else:
             run_id = run.info.run_id
@@ -263,9 +277,10 @@ def prepare(client: Client, study: str, profile: str, milestones: list[Milestone
 def run_milestones(study: str, tasks: list[str] | None = None, variants: list[str] | None = None,
                    rollouts: int | None = None, workers: int = 1, uri: str | None = None,
                    feedback: str | None = None, device: str = "cpu", iterations: list[int] | None = None,
-                   split: str = "test") -> dict[str, int]:
+                   split: str = "test", stack_restart: str | None = None) -> dict[str, int]:
     """Evaluate every kept checkpoint of the study not evaluated yet (feeding back `feedback` instead of the
-    cells' own, on the episodes of `split`: module docstring); counts by outcome."""
+    cells' own, on the episodes of `split`, on stacking alone under `stack_restart`: module docstring); counts by
+    outcome."""
     from experiments.runtime.processes import training_threads, worker_pool
 
     start = time.perf_counter()
@@ -274,10 +289,16 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
         raise MilestoneError(f"no MLflow store at {db} (run the ablation study first, or set MLFLOW_TRACKING_URI)")
     client = Client(uri)
     milestones, profile = find_milestones(client, study, tasks, variants, iterations)
-    # a final model's own evaluation is copied only where it is the one asked for: its feedback, on the same split
-    milestones = [m if not m.final or (not feedback and _cell_split(client, m) == split)
+    if stack_restart:
+        milestones = [m for m in milestones if STACK_TASK in evaluation_tasks(m.task)]
+        if not milestones:
+            raise MilestoneError(f"study {study!r} has no selected cell whose model is evaluated on {STACK_TASK} "
+                                 "(--stack-restart changes stacking alone)")
+    # a final model's own evaluation is copied only where it is the one asked for: its feedback, on the same split,
+    # all its tasks under their own protocol
+    milestones = [m if not m.final or (not feedback and not stack_restart and _cell_split(client, m) == split)
                   else dataclasses.replace(m, final=False) for m in milestones]
-    parent_id, todo, done = prepare(client, study, profile, milestones, rollouts, feedback, split)
+    parent_id, todo, done = prepare(client, study, profile, milestones, rollouts, feedback, split, stack_restart)
     counts = {"FINISHED": 0, "FAILED": 0, "skipped": done}
     level = logging.getLogger().getEffectiveLevel()
     log.info("study %r: %d kept checkpoints (%d to evaluate, %d done)", study, len(milestones), len(todo), done)
@@ -289,7 +310,7 @@ def run_milestones(study: str, tasks: list[str] | None = None, variants: list[st
     with worker_pool(max(1, workers)) as pool:
         threads = training_threads()
         futures = [(m, pool.submit(evaluate_milestone, client.uri, m, r, rollouts, level, threads, feedback, device,
-                                   split)) for m, r in evaluate]
+                                   split, stack_restart)) for m, r in evaluate]
         for m, fut in futures:
             status, error = fut.result()
             counts[status] += 1
@@ -317,6 +338,9 @@ def add_parser(sub) -> None:
                    help="the episodes: test (default: the headline's) or validation (disjoint ones, where protocol "
                         f"choices are made; {VALIDATION_ROLLOUTS} per seed and task unless --rollouts; final models "
                         "included), as the study <study>-milestones-validation[-feedback-<MODE>]")
+    p.add_argument("--stack-restart", choices=STACK_RESTARTS, default=None,
+                   help="evaluate stacking alone with this eval.stack_restart (the protocol between the blocks), "
+                        "final models included, as the study <study>-milestones[...]-stack-<value>")
     p.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -327,13 +351,14 @@ def main(args) -> int:
         return 2
     try:
         check_study_name(args.study, "--study")
-        check_study_name(milestones_study_name(args.study, args.feedback, args.split), "the milestones study's name")
+        name = milestones_study_name(args.study, args.feedback, args.split, args.stack_restart)
+        check_study_name(name, "the milestones study's name")
         device = checked_device(args.device) or "cpu"
         counts = run_milestones(args.study, args.tasks, args.variants, args.rollouts, args.workers,
-                                feedback=args.feedback, device=device, iterations=args.iterations, split=args.split)
+                                feedback=args.feedback, device=device, iterations=args.iterations, split=args.split,
+                                stack_restart=args.stack_restart)
     except (MilestoneError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"{milestones_study_name(args.study, args.feedback, args.split)!r}: {counts['FINISHED']} evaluated, "
-          f"{counts['skipped']} already done, {counts['FAILED']} failed")
+    print(f"{name!r}: {counts['FINISHED']} evaluated, {counts['skipped']} already done, {counts['FAILED']} failed")
     return 1 if counts["FAILED"] else 0

@@ -246,7 +246,10 @@ def test_cell_keys_and_hashes_match_the_recorded_ones():
     move, or every cell of every existing study would be retrained. The paper profile's entry was
     re-recorded on 1 Dec 2026 when that profile became the headline protocol, quick's
     the same day when its pick-and-place iterations rose to 2,000 and on 2 Dec when its rollouts per
-    seed went from 50 to 40."""
+    seed went from 50 to 40. The paper entry again on 6 Dec, when the profile judged pick-and-place on the block
+    (eval.success = placed, chosen on validation episodes): its hashes are those `--set eval.success=placed` gave
+    before (the pick-and-place v2 studies' cells keep theirs); the earlier paper studies' strict cells resume
+    with `--set eval.success=strict` and their --study-name."""
     import json
 
     recorded = json.loads((REPO / "tests" / "data" / "cell_hashes.json").read_text())

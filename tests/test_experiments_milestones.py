@@ -205,3 +205,64 @@ def test_feedback_evaluates_the_final_models_anew_as_their_own_study(mdn_store, 
                          tmp_path / "fig").read_text()
     assert re.search(r"\| reacher +\| LSTM-MDN +\| eval.feedback=component_mean +\|", text)
     assert re.search(r"\| reacher +\| LSTM-MDN +\| eval.feedback=sample +\|", text)
+
+
+@pytest.fixture(scope="module")
+def stack_store(tmp_path_factory):
+    """A smoke pick-place study (lstm, one seed, 4 demonstrations, 10 iterations) that kept its final checkpoint;
+    its model is also evaluated on stacking, under the default protocol between the blocks (place_pose)."""
+    store = tmp_path_factory.mktemp("kept-stack")
+    proc = run_cli(["ablation", "--profile", "smoke", "--tasks", "pick-place", "--variants", "lstm", "--workers", "1",
+                    "--set", "keep_checkpoints=10", "--set", "per_task.pick-place.data.n_demos=4",
+                    "--set", "train.step_kernel=python", "--study-name", "stk", *SMALL], store, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return store
+
+
+def test_stack_restart_names_its_study_after_the_other_choices():
+    from experiments.milestones import milestones_study_name
+
+    assert milestones_study_name("pickplace-v2", split="validation", stack_restart="start") == \
+        "pickplace-v2-milestones-validation-stack-start"
+    assert milestones_study_name("p", "sample", "validation", "place_pose") == \
+        "p-milestones-validation-feedback-sample-stack-place_pose"
+
+
+@pytest.mark.slow
+def test_stack_restart_evaluates_stacking_alone_under_its_protocol(stack_store, tmp_path):
+    """--stack-restart start: the final model evaluated anew (not copied) on stacking alone, with the scripted move
+    to a drawn start configuration between the blocks, whose per-episode check the cell's own evaluation lacks."""
+    proc = run_cli(["milestones", "--study", "stk", "--stack-restart", "start"], stack_store)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "'stk-milestones-stack-start': 1 evaluated, 0 already done, 0 failed" in proc.stdout
+    client = MlflowClient(f"sqlite:///{stack_store / 'mlflow.db'}")
+    (source,) = _runs(client, "ablation")
+    (run,) = _runs(client, "milestones")
+    assert run.data.tags["study_name"] == "stk-milestones-stack-start" and "copied" not in run.data.tags
+    assert run.data.params["eval.stack_restart"] == "start"
+    assert source.data.params.get("eval.stack_restart", "place_pose") == "place_pose"
+    assert {f.path for f in client.list_artifacts(run.info.run_id, "rollouts")} == {"rollouts/stack.npz"}
+    assert {k.split("/")[0] for k in run.data.metrics if "/" in k} <= {"stack", "time"}  # stacking's metrics only
+    assert "pick-place/success_rate" in source.data.metrics
+    with np.load(client.download_artifacts(run.info.run_id, "rollouts/stack.npz")) as z:
+        assert set(np.unique(z["tower_stood_move_1"])) <= {0.0, 1.0} and len(z["tower_stood_move_2"]) == 3
+        assert run.data.metrics["stack/success_rate"] == pytest.approx(np.mean(z["success"]))
+    with np.load(client.download_artifacts(source.info.run_id, "rollouts/stack.npz")) as z:
+        assert "tower_stood_move_1" not in z.files  # place_pose moves nothing between the blocks
+
+    from reports.data.store import Store
+    from reports.results.writer import write_results
+
+    template = tmp_path / "t.md"  # its success table: the stacking row, no gap rows for the tasks it skipped
+    template.write_text('{{ success_table(study="stk-milestones-stack-start") }}\n')
+    text = write_results(Store(f"sqlite:///{stack_store / 'mlflow.db'}"), template, tmp_path / "R.md",
+                         tmp_path / "fig").read_text()
+    assert "| stacking" in text and "| pick-and-place" not in text and " gap " not in text, text
+
+
+@pytest.mark.slow
+def test_stack_restart_needs_a_cell_that_serves_stacking(kept_store):
+    proc = run_cli(["milestones", "--study", "kept", "--stack-restart", "start"], kept_store)  # reacher cells only
+    assert proc.returncode == 2
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and "evaluated on stack" in lines[0], proc.stderr[-2000:]

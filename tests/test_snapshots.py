@@ -1,7 +1,7 @@
 """A study moved between machines: `reports export --with-checkpoints` writes a snapshot (an export with each
-unfinished cell's resume checkpoint and every kept checkpoint), `reports import` reads it into a store in another
-folder, and the same study command there resumes every cell where it stopped, to the same models and numbers as a
-study that was never stopped."""
+unfinished cell's resume checkpoint and every kept checkpoint's weights), `reports import` reads it into a store in
+another folder, and the same study command there resumes every cell where it stopped, to the same models and numbers
+as a study that was never stopped; a snapshot of that store carries the imported models on."""
 
 from __future__ import annotations
 
@@ -48,7 +48,8 @@ def test_a_snapshot_imported_elsewhere_resumes_to_the_uninterrupted_models(tmp_p
     assert snap.returncode == 0, snap.stderr[-3000:]
     files = {p.relative_to(tmp_path / "snap" / "moved").as_posix().split("/", 2)[-1]
              for p in (tmp_path / "snap" / "moved").rglob("*.pt")}
-    assert files == {"checkpoint/model.pt", "checkpoint_at/50/model.pt"}  # per seed: where it stands, and kept
+    # per seed: where it stands, and the checkpoint it kept as its weights alone
+    assert files == {"checkpoint/model.pt", "weights_at/50/weights.pt"}
     refused = run_cli(["export", "--study", "moved", "--with-checkpoints", "--out", "reports/studies"], here,
                       module="reports")
     assert refused.returncode == 2 and "stays out of reports/studies" in refused.stderr
@@ -72,3 +73,10 @@ def test_a_snapshot_imported_elsewhere_resumes_to_the_uninterrupted_models(tmp_p
         assert mine.keys() == theirs.keys()
         assert all(torch.equal(mine[k], theirs[k]) for k in mine)  # bit for bit: same code, same machine
         assert run.data.metrics["reacher/success_rate"] == ref.data.metrics["reacher/success_rate"]
+
+    again = run_cli(["export", "--study", "moved", "--with-checkpoints", "--out", str(tmp_path / "again")], there,
+                    module="reports")
+    assert again.returncode == 0, again.stderr[-3000:]
+    carried = {p.relative_to(tmp_path / "again" / "moved").as_posix().split("/", 2)[-1]
+               for p in (tmp_path / "again" / "moved").rglob("*.pt")}
+    assert carried == {"weights_at/50/weights.pt", "weights_at/100/weights.pt"}  # finished: no resume checkpoint

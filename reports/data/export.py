@@ -27,11 +27,11 @@ models are evaluated anew by `python -m experiments milestones --study NAME [--i
 exactly as they are from the original store.
 
 A snapshot (`--with-checkpoints`) is an export that can also be trained on: each unfinished cell's resume
-checkpoint (checkpoint/model.pt: weights, optimiser, RNG state, history) and every cell's kept checkpoints
-(checkpoint_at/<iteration>/model.pt) come along, byte for byte. Imported into a store elsewhere
-(reports.data.studyimport), the same study command resumes every cell where it stopped and the milestones command
-finds its checkpoints. Snapshots weigh megabytes per cell: they go to SNAPSHOTS (ignored by git), never to the
-committed exports.
+checkpoint (checkpoint/model.pt: weights, optimiser, RNG state, history) comes along byte for byte, and every
+checkpoint a cell kept (checkpoint_at/<iteration>/) as its model alone (weights_at/<iteration>/weights.pt, as
+`--with-models` writes them: a third of the bytes). Imported into a store elsewhere (reports.data.studyimport), the
+same study command resumes every cell where it stopped and the milestones command evaluates the kept models.
+Snapshots weigh megabytes per cell: they go to SNAPSHOTS (ignored by git), never to the committed exports.
 
 The folder is ROOT/<study name> (the study name rule of experiments.runtime.study_names makes the name a folder name;
 resolved, it must lie inside ROOT). An export replaces only an earlier export of the same study there (its runs.json
@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from envs.fileio import atomic_write_bytes
-from experiments.cell_run import CHECKPOINT_DIR, CHECKPOINT_NAME, KEPT_CHECKPOINT_DIR
+from experiments.cell_run import CHECKPOINT_DIR, CHECKPOINT_NAME
 from experiments.mode_repeats import MODES_DIR
 from experiments.runtime.study_names import inside, study_folder
 from experiments.runtime.tracking import PARENT_TAG, store_dir
@@ -144,6 +144,7 @@ class _Exporter:
         self.models = models  # reports.data.export_models.ModelChoice, or None: no models
         self.roots = _machine_roots(store.uri)
         self.dropped: set[str] = set()
+        self.snapshot_at: set[int] = set()  # the iterations of the checkpoints a snapshot's runs kept
 
     def runs(self) -> list:
         """The parent run, then every run below it (any depth), by start time and id."""
@@ -188,12 +189,25 @@ class _Exporter:
         except Exception as exc:  # noqa: BLE001 - an unreachable artifact store
             raise ExportError(f"cannot list the artifacts of run {run_id}: {str(exc).splitlines()[0]}") from None
 
-    def checkpoint_files(self, run, tmp: Path) -> dict[str, bytes]:
-        """A snapshot's checkpoints of a run: every kept one, and the resume checkpoint unless it FINISHED."""
-        paths = self.listed(run.info.run_id, KEPT_CHECKPOINT_DIR)
-        if run.info.status != "FINISHED":
-            paths += [p for p in self.listed(run.info.run_id, CHECKPOINT_DIR) if Path(p).name == CHECKPOINT_NAME]
+    def resume_checkpoint(self, run, tmp: Path) -> dict[str, bytes]:
+        """A snapshot's resume checkpoint of a run, byte for byte, unless the run FINISHED."""
+        if run.info.status == "FINISHED":
+            return {}
+        paths = [p for p in self.listed(run.info.run_id, CHECKPOINT_DIR) if Path(p).name == CHECKPOINT_NAME]
         return {p: Path(self.client.download_artifacts(run.info.run_id, p, str(tmp))).read_bytes() for p in paths}
+
+    def model_choice(self, run):
+        """The models of a run: the export's choice and, in a snapshot, every checkpoint the run kept (and every
+        model imported with it), as weights alone: a kept checkpoint is evaluated, never trained on, and its
+        optimiser state would triple a snapshot."""
+        from reports.data.export_models import ModelChoice, held_iterations
+
+        if not self.checkpoints:
+            return self.models
+        kept = held_iterations(self, run.info.run_id)
+        at = set(self.models.at if self.models else ()) | kept
+        self.snapshot_at |= kept
+        return ModelChoice(tuple(sorted(at))) if at or self.models else None
 
     def artifacts(self, run_id: str, tmp: Path) -> dict[str, bytes]:
         """rollouts/*.npz (float32), rollouts/ik_timing.json and rollouts/modes/*.json (canonical JSON) of a run, as
@@ -222,9 +236,10 @@ class _Exporter:
                 rid = r.info.run_id
                 arts = self.artifacts(rid, Path(tmp))
                 if self.checkpoints:
-                    arts.update(self.checkpoint_files(r, Path(tmp)))
-                if self.models is not None:
-                    arts.update(run_models(self, r, self.models, Path(tmp)))
+                    arts.update(self.resume_checkpoint(r, Path(tmp)))
+                models = self.model_choice(r)
+                if models is not None:
+                    arts.update(run_models(self, r, models, Path(tmp)))
                 files.update({f"{ARTIFACTS}/{rid}/{p}": b for p, b in arts.items()})
                 runs.append({
                     "run_id": rid, "run_name": r.info.run_name, "status": r.info.status,
@@ -235,8 +250,8 @@ class _Exporter:
                     "artifacts": {p: hashlib.sha256(b).hexdigest() for p, b in arts.items()}})
         doc = {"format": FORMAT, "study_name": self.study.name, "experiment": self.study.experiment,
                "history_thinning": HISTORY_NOTE, "dropped": sorted(self.dropped), "runs": runs}
-        if self.models is not None:
-            doc[MODELS_KEY] = {"at": list(self.models.at)}
+        if self.models is not None or self.snapshot_at:
+            doc[MODELS_KEY] = {"at": sorted(set(self.models.at if self.models else ()) | self.snapshot_at)}
         return doc, files
 
 

@@ -68,6 +68,13 @@ def _by_iteration(paths: list[str], name: str) -> dict[int, str]:
     return out
 
 
+def held_iterations(exporter, run_id: str) -> set[int]:
+    """The iterations of the models a run holds besides its resume checkpoint: the checkpoints it kept and the
+    weights imported with it. `exporter`: reports.data.export's, for its listing."""
+    return (set(_by_iteration(exporter.listed(run_id, KEPT_CHECKPOINT_DIR), CHECKPOINT_NAME))
+            | set(_by_iteration(exporter.listed(run_id, WEIGHTS_DIR), WEIGHTS_NAME)))
+
+
 def run_models(exporter, run, choice: ModelChoice, tmp: Path) -> dict[str, bytes]:
     """The model files of one run as exported bytes ({} without models): weights_at/<iteration>/weights.pt from the
     run's weights (imported earlier), kept checkpoints or, for the final model, its resume checkpoint; and its
