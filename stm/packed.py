@@ -6,7 +6,8 @@ are per model. A pack is built from K ordinary STMs (`PackedSTM.from_models`, so
 model keeps the initialisation its seed gives alone) and model k comes back out as an
 ordinary STM (`extract`). The optimiser (`PackedAdam`) and gradient clipping
 (`clip_per_model`) act per model, so each model trains as if alone; stm.training.autoconditioning
-unrolls a pack and stm.training.loop runs the loop (a single model is a pack of one).
+unrolls a pack and stm.training.loop runs the loop (a single model is a pack of one); stm.rollout
+generates with a pack in one batched loop.
 """
 
 from __future__ import annotations
@@ -124,6 +125,8 @@ class PackView:
 
     def mixture(self, raw: torch.Tensor):
         return mdn.split_params(raw, self.config.mixtures, self.dim, self.config.sigma_min)
+
+    predict = STM.predict  # head outputs -> a predicted next state, as one model's (it reads what a view has too)
 
     def losses(self, raw: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, kernel: str = "python"
                ) -> torch.Tensor:

@@ -10,7 +10,6 @@ from envs.tasks.base import Episode
 from stm.config import ModelConfig, TrainConfig
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
-from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.speed.bench import SIZES, BenchTask, _iterations, bench_demos
 from stm.training.autoconditioning import batch_loss
@@ -72,5 +71,5 @@ def test_thousand_reacher_rollouts_of_three_models_batched(benchmark, reacher_se
     rng = np.random.default_rng(0)
     eps = [Episode(q0=NEUTRAL_Q + rng.uniform(-0.2, 0.2, 7), psi=np.tile([0.6, 0.1, 0.1], (71, 1)), horizon=70)
            for _ in range(1000)]
-    out = benchmark.pedantic(generate_packed, args=([model] * 3, task, eps), rounds=3, warmup_rounds=1)
+    out = benchmark.pedantic(generate, args=([model] * 3, task, eps), rounds=3, warmup_rounds=1)
     assert len(out) == 3 and all(ro.q.shape == (1000, 71, 7) and np.isfinite(ro.q).all() for ro in out)

@@ -20,7 +20,6 @@ from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from stm.config import ModelConfig, TrainConfig
 from stm.packed import PackedSTM
-from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.training.checkpoint import load_checkpoint
 from stm.training.loop import check_packable, train, train_packed
@@ -78,7 +77,7 @@ def test_packed_training_equals_separate_training(toy, variant, extra):
     # rollouts of the K models batched equal each model's own rollouts
     episodes = task.episodes(5, 7)
     mode = "sample" if extra.get("feedback") == "sample" else "component_mean"
-    batched = generate_packed([p.model for p in packed], task, episodes, feedback=mode, seed=3)
+    batched = generate([p.model for p in packed], task, episodes, feedback=mode, seed=3)
     for s, ro in zip(singles, batched, strict=True):
         alone = generate(s.model, task, episodes, feedback=mode, seed=3)
         np.testing.assert_allclose(ro.q, alone.q, atol=ROLLOUT_TOL, rtol=0)

@@ -1,11 +1,13 @@
 import numpy as np
 import pytest
+import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from envs.kinematics import tip_position_np
 from envs.tasks.base import Episode
 from stm.config import ModelConfig, TrainConfig
-from stm.rollout import evaluate, generate
+from stm.model import STM
+from stm.rollout import FEEDBACKS, evaluate, generate
 from stm.training.loop import train
 from stm.training.validation import demo_episodes
 
@@ -74,8 +76,6 @@ def test_a_restart_step_with_a_listed_configuration_continues_from_it(overfit):
     """info["restart_q"]: at its restart step the model restarts from that configuration (a task moves the arm
     there by script between the two rows): the row of the restart step keeps where the last segment ended, the rest
     is a fresh episode from the listed configuration; the packed rollout of several models agrees."""
-    from stm.packed_rollout import generate_packed
-
     task, demos, model = overfit
     ep = demo_episodes(demos, 1)[0]
     k, elsewhere = 6, np.asarray(ep.q0) + 0.1
@@ -85,8 +85,8 @@ def test_a_restart_step_with_a_listed_configuration_continues_from_it(overfit):
     np.testing.assert_allclose(ro[: k + 1], plain[: k + 1], atol=1e-6)  # the last segment's end is kept
     fresh = generate(model, task, [Episode(q0=elsewhere, psi=ep.psi[k:], horizon=ep.horizon - k)]).q[0]
     np.testing.assert_allclose(ro[k + 1:], fresh[1:], atol=1e-5)  # then a new episode from the listed configuration
-    (packed,) = generate_packed([model], task, [listed])
-    np.testing.assert_allclose(packed.q[0], ro, atol=1e-5)
+    for packed in generate([model, model], task, [listed]):  # two models: the batched step
+        np.testing.assert_allclose(packed.q[0], ro, atol=1e-5)
     with pytest.raises(ValueError, match="2 restart configurations for 1 restart steps"):
         generate(model, task, [Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon,
                                        info={"restart_steps": [k], "restart_q": [elsewhere, elsewhere]})])
@@ -122,10 +122,6 @@ def test_rollout_rejects_a_task_of_another_state_size(overfit):
 def _two_mode_model(task, step=0.02):
     """An MDN whose mixture ignores its input: two equally likely components that move joint 0 by
     +step or -step per step (normalisation is the identity)."""
-    import torch
-
-    from stm.model import STM
-
     model = STM(ModelConfig(hidden_size=4, num_layers=1, mixtures=2), task.layout)
     D = task.layout.dim
     with torch.no_grad():
@@ -184,3 +180,21 @@ def test_segment_track_keeps_the_drawn_mode_by_continuity():
     # the components' means never move, so the most responsible component is the one drawn at the start
     assert np.array_equal(tracked.components, committed.components)
     assert np.array_equal(tracked.q, committed.q)
+
+
+@pytest.mark.parametrize("feedback", FEEDBACKS)
+def test_k_models_in_one_call_roll_out_as_each_alone(overfit, feedback):
+    """A list of K models runs one batched loop: each model's rollouts as alone up to float rounding (its own
+    generator, every feedback mode, restarts included), and a list of one model exactly as the model alone."""
+    task, demos, model = overfit
+    torch.manual_seed(1)
+    other = STM(model.config, task.layout, model.state_mean, model.state_std).eval()
+    eps = [Episode(q0=ep.q0, psi=ep.psi, horizon=ep.horizon, info={"restart_steps": [5]})
+           for ep in task.episodes(4, seed=2)]
+    for m, ro in zip([model, other], generate([model, other], task, eps, feedback=feedback, seed=4), strict=True):
+        alone = generate(m, task, eps, feedback=feedback, seed=4)
+        np.testing.assert_allclose(ro.q, alone.q, atol=1e-5, rtol=0)
+        assert np.array_equal(ro.components, alone.components) and np.array_equal(ro.grip, alone.grip)
+    (one,) = generate([other], task, eps, feedback=feedback, seed=4)
+    alone = generate(other, task, eps, feedback=feedback, seed=4)
+    assert np.array_equal(one.q, alone.q) and np.array_equal(one.components, alone.components)

@@ -20,7 +20,6 @@ import torch
 from stm_toytask import ToyReach, single_torch_thread  # noqa: F401  (autouse)
 
 from stm.config import ModelConfig, TrainConfig
-from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.training.checkpoint import save_checkpoint
 from stm.training.loop import train, train_packed
@@ -66,7 +65,7 @@ def test_single_and_packed_training_reproduce_the_reference(reference, toy, case
         alone = train(model_cfg, cfg, task, demos)
         _assert_matches(alone, generate(alone.model, task, episodes, feedback=mode, seed=3), ref["single"][k])
     packed = train_packed(model_cfg, cfgs, task, demos)
-    rollouts = generate_packed([r.model for r in packed], task, episodes, feedback=mode, seed=3)
+    rollouts = generate([r.model for r in packed], task, episodes, feedback=mode, seed=3)
     for k, (result, rollout) in enumerate(zip(packed, rollouts, strict=True)):
         assert result.failure is None
         _assert_matches(result, rollout, ref["packed"][k])

@@ -29,8 +29,8 @@ floats flushed to zero, as stm.training.loop trains; --weights CHECKPOINT also t
 checkpoint's copies with them flushed and kept (stm.speed.trained: on a peaked mixture head the difference is
 large). The tip kinematics of the fed-back state (stm.fk) against
 pytorch-kinematics, per call and in ATen calls. Then 1,000 reacher rollouts of 70 steps with FK grounding, and
-3 models' rollouts batched (stm.packed_rollout) against one after the other, for 1,000 and for 34 episodes (an
-evaluation cell's).
+3 models' rollouts batched (stm.rollout.generate of a pack) against one after the other, for 1,000 and for 34
+episodes (an evaluation cell's).
 
 Times are CPU seconds of this process by default (--clock cpu): on a shared machine, wall
 time also counts the other processes' load. Ratios are what to read.
@@ -57,7 +57,6 @@ from stm.device import DeviceError, resolve_device
 from stm.fk import default_tip_kinematics
 from stm.model import STM, normalization_stats
 from stm.packed import PackedSTM
-from stm.packed_rollout import generate_packed
 from stm.rollout import generate
 from stm.speed.bench_inputs import BenchTask, PlainMDN, bench_demos
 from stm.speed.floor import PEAK_SIZE, iteration_flops, peak_gflops, product_flops, record_matmuls, replayer
@@ -309,15 +308,15 @@ def rollout_bench(n: int = 1000, steps: int = 70, rounds: int = 3) -> dict:
         torch.manual_seed(seed)
         models.append(STM(model.config, task.layout, *stats).eval().to(_device))
     pack = PackedSTM.from_models(models).to(_device)
-    generate_packed(pack, task, episodes[:8])  # warm-up
+    generate(pack, task, episodes[:8])  # warm-up
     few = episodes[:EVAL_EPISODES]
     secs, separate, packed, separate_few, packed_few = [], [], [], [], []
     for _ in range(rounds):  # interleaved
         secs.append(_time_once(lambda: generate(model, task, episodes), 1))  # (generate's own .seconds is wall)
         separate.append(_time_once(lambda: [generate(m, task, episodes) for m in models], 1))
-        packed.append(_time_once(lambda: generate_packed(pack, task, episodes), 1))
+        packed.append(_time_once(lambda: generate(pack, task, episodes), 1))
         separate_few.append(_time_once(lambda: [generate(m, task, few) for m in models], 3))
-        packed_few.append(_time_once(lambda: generate_packed(pack, task, few), 3))
+        packed_few.append(_time_once(lambda: generate(pack, task, few), 3))
     return {"rollouts": n, "steps": steps, "fk_grounding": True, "seconds": round(statistics.median(secs), 3),
             "seconds_all": [round(s, 3) for s in secs], "packed_k": PACK,
             "packed_seconds": round(statistics.median(packed), 3),
