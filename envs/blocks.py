@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
-from envs.sim import TABLE_TOP_Z, Scene
+from envs.sim import TABLE_TOP_Z, Scene, finger_target
 
 BLOCK_SIZE = 0.04  # edge of the cube (m)
 BLOCK_MASS = 0.05  # kg
@@ -59,7 +59,7 @@ class BlockState:
 
 class BlockWorld:
     """A Scene with grasp-tuned, coupled fingers and any number of blocks. The tasks
-    build a fresh one per episode (about 30 ms) so that results do not depend on what
+    build a fresh one per episode (about 10 ms: 1-3 % of its physics) so that results do not depend on what
     ran before in the same pybullet world; clear() removes the blocks."""
 
     def __init__(self, scene: Scene | None = None):
@@ -110,10 +110,13 @@ class BlockWorld:
         return self.scene.robot.link_pose(self.scene.robot.tip)[0]
 
     def hold(self, q: np.ndarray, grip: float, seconds: float) -> None:
-        """Keep commanding the last targets while the world settles."""
+        """Hold the targets q (7,) and grip while the world settles for `seconds` (commanded once: a motor keeps
+        its target, as Scene.play relies on)."""
         n = max(1, round(seconds / self.scene.time_step))
+        targets, finger = list(map(float, q)), finger_target(grip)
+        self.scene.command_arm(targets)
+        self.scene.command_fingers(finger)
         for _ in range(n):
-            self.scene.command(q, grip)
             p.stepSimulation(physicsClientId=self.client)
 
     def close(self) -> None:

@@ -28,6 +28,19 @@ class Playback:
     tip: np.ndarray  # (T+1, 3) measured tool-tip positions
 
 
+def finger_target(grip: float) -> float:
+    """The fingers' joint target for a grip command in [0, 1]: closed (0) from 0.5 on, else open."""
+    return 0.0 if grip >= 0.5 else FINGER_OPEN
+
+
+def interpolated_targets(q: np.ndarray, substeps: int) -> list[list[list[float]]]:
+    """The arm's joint targets that play commands between the rows of q (T+1, 7): per row t >= 1, for substep
+    k = 1..substeps, q[t-1] + (q[t] - q[t-1]) * (k / substeps), as nested lists (the floats pybullet takes, built
+    in one go rather than per physics step; the same floats as per step)."""
+    frac = np.array([k / substeps for k in range(1, substeps + 1)])
+    return (q[:-1, None, :] + (q[1:] - q[:-1])[:, None, :] * frac[None, :, None]).tolist()
+
+
 class Scene:
     """A pybullet world in DIRECT mode (or GUI) with the robot and, optionally, the table."""
 
@@ -37,6 +50,7 @@ class Scene:
         p.setGravity(0, 0, -9.81, physicsClientId=self.client)
         p.setTimeStep(time_step, physicsClientId=self.client)
         self.robot: PybulletRobot = load_in_pybullet(self.client)
+        self._arm_forces = [float(f) for f in LIMITS.effort]
         self.table = self._add_table() if table else None
         self.robot.reset(NEUTRAL_Q)
 
@@ -62,17 +76,20 @@ class Scene:
     # control -----------------------------------------------------------------
     def command(self, q_target: np.ndarray, grip: float | None = None) -> None:
         """Joint-position targets for the arm; grip in [0, 1] (>= 0.5 closes the fingers)."""
-        r = self.robot
-        p.setJointMotorControlArray(
-            r.body, r.arm, p.POSITION_CONTROL, targetPositions=list(map(float, q_target)),
-            forces=list(LIMITS.effort), physicsClientId=self.client,
-        )
+        self.command_arm(list(map(float, q_target)))
         if grip is not None:
-            target = 0.0 if grip >= 0.5 else FINGER_OPEN
-            p.setJointMotorControlArray(
-                r.body, r.fingers, p.POSITION_CONTROL, targetPositions=[target, target],
-                forces=[GRIPPER_FORCE, GRIPPER_FORCE], physicsClientId=self.client,
-            )
+            self.command_fingers(finger_target(grip))
+
+    def command_arm(self, targets: list[float]) -> None:
+        """Joint-position targets (7 floats) for the arm, at the URDF's effort limits."""
+        p.setJointMotorControlArray(self.robot.body, self.robot.arm, p.POSITION_CONTROL, targetPositions=targets,
+                                    forces=self._arm_forces, physicsClientId=self.client)
+
+    def command_fingers(self, target: float) -> None:
+        """One position target for both fingers, at GRIPPER_FORCE each."""
+        p.setJointMotorControlArray(self.robot.body, self.robot.fingers, p.POSITION_CONTROL,
+                                    targetPositions=[target, target], forces=[GRIPPER_FORCE, GRIPPER_FORCE],
+                                    physicsClientId=self.client)
 
     def step(self, n: int = 1) -> None:
         for _ in range(n):
@@ -82,16 +99,23 @@ class Scene:
              on_step=None) -> Playback:
         """Run a joint-position trajectory q (T+1, 7) from its first row, one row per
         `step_seconds`, targets interpolated linearly between rows. `on_step(t)` is
-        called after step t (e.g. to swap blocks). Returns the measured path."""
+        called after step t (e.g. to swap blocks). Returns the measured path.
+        The arm gets its target every physics step, the fingers theirs when it changes: a motor
+        keeps its target, so the physics is bit for bit that of commanding both every step
+        (tests/test_sim_playback.py), without the Python around the steps."""
         q = np.asarray(q, dtype=float)
-        grip = None if grip is None else np.asarray(grip, dtype=float)
+        fingers = None if grip is None else [finger_target(g) for g in np.asarray(grip, dtype=float)]
         substeps = max(1, round(step_seconds / self.time_step))
-        self.robot.reset(q[0], finger=0.0 if grip is not None and grip[0] >= 0.5 else FINGER_OPEN)
+        targets = interpolated_targets(q, substeps)
+        self.robot.reset(q[0], finger=FINGER_OPEN if fingers is None else fingers[0])
         qs, tips = [self.robot.joint_positions()], [self.robot.link_pose(self.robot.tip)[0]]
+        finger = None  # the fingers' last commanded target
         for t in range(1, len(q)):
-            g = None if grip is None else grip[t]
-            for k in range(1, substeps + 1):
-                self.command(q[t - 1] + (q[t] - q[t - 1]) * (k / substeps), g)
+            for row in targets[t - 1]:
+                self.command_arm(row)
+                if fingers is not None and fingers[t] != finger:
+                    finger = fingers[t]
+                    self.command_fingers(finger)
                 p.stepSimulation(physicsClientId=self.client)
             qs.append(self.robot.joint_positions())
             tips.append(self.robot.link_pose(self.robot.tip)[0])
