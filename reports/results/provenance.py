@@ -88,7 +88,9 @@ def _runs(s: Study) -> str:
     if s.kind == "sweep":  # a pruned trial is a KILLED run, not a failure
         states = sweep_summary.sweep_frame(s)["trial_state"].value_counts()
         return f"{len(ch)} trials ({', '.join(f'{n} {k.lower()}' for k, n in sorted(states.items()))})"
-    return f"{len(ch)} ({int((ch['status'] == 'FINISHED').sum())} finished, {int(ch['failed'].sum())} failed)"
+    stopped = int((ch["status"] == "KILLED").sum())  # Ctrl-C: resumable, not a failure
+    return (f"{len(ch)} ({int((ch['status'] == 'FINISHED').sum())} finished, "
+            + (f"{stopped} stopped, " if stopped else "") + f"{int(ch['failed'].sum()) - stopped} failed)")
 
 
 def _software_of(studies: list[Study]) -> str:
