@@ -23,7 +23,8 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 SOURCES = [Path(__file__).parent / "csrc" / name
-           for name in ("self_fed.cpp", "lstm_step.cpp", "feedback_state.cpp", "mdn_nll.cpp")]
+           for name in ("self_fed.cpp", "segment.cpp", "lstm_step.cpp", "feedback_state.cpp", "products.cpp",
+                         "vec_math.cpp", "mdn_nll.cpp")]
 NAME = "stm_self_fed"
 REQUIRE = "ACRMDN_REQUIRE_CPP"  # set (not "0"): the extension must build, a failed build raises
 load_seconds: float | None = None  # how long loading took in this process (a first build: about a minute)

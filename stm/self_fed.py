@@ -1,14 +1,20 @@
-"""The self-fed steps of the auto-conditioned unroll, a whole segment per call, in C++ (stm/csrc/self_fed.cpp).
+"""The self-fed steps of the auto-conditioned unroll, a whole segment per call, in C++ (stm/csrc/segment.cpp).
 
 A self-fed step of stm.training.autoconditioning.unroll in Python is the feedback head, the fed-back state
 (stm.model.feedback_state with the tip kinematics of stm.fk) and the LSTM stack step (stm.lstm_step): ~330 small
 ATen calls forward and backward, each paying Python's per-op cost. `cpp_steps` gives the unroll one autograd
-node per run of self-fed steps instead, whose forward and backward are the same ATen calls issued from C++; and
-one per ground-truth chunk between them, a layer sequence in C++ (oneDNN's fused layer, which the Python path
-calls for one model, pays more set-up than five steps cost; the Python layer sequence, for a pack, pays Python's
-per-op cost). Weight gradients are one product per layer and chunk (or segment), summed in place over the unroll
-(_GradSums) and handed to autograd once; deferring all rows to one product after the unroll, as the Python steps do,
-would copy every row once more.
+node per run of self-fed steps instead, whose forward and backward make no ATen call per step: the products go to
+BLAS with the arguments ATen's products pass it (stm/csrc/products.cpp), the gates' sigmoid and tanh and the tip's
+sine are computed as ATen computes them (vec_math.cpp), and the rest (the cell update, the head's pick of a
+component, the fed-back state, their backward) runs in plain loops over the step's rows (lstm_step.cpp,
+feedback_state.cpp), on buffers made once per segment; so the results are those of the ATen calls they replace,
+bit for bit, and an iteration's ATen calls are its segments' and chunks' set-up (about 4,300 at the pick-and-place
+size, from 23,700 with the per-step calls issued from C++). And one node per ground-truth chunk between them, a
+layer sequence in C++ (lstm_step.cpp, stepped likewise; oneDNN's fused layer, which the Python path calls for one
+model, pays more set-up than five steps cost; the Python layer sequence, for a pack, pays Python's per-op cost).
+Weight gradients are one product per layer and chunk (or segment), summed in place over the unroll (_GradSums) and
+handed to autograd once; deferring all rows to one product after the unroll, as the Python steps do, would copy
+every row once more.
 
 TrainConfig.step_kernel "auto" (the default, where the extension builds) or "cpp" selects it where it applies: on
 the CPU, an MDN head feeding back component_mean or a deterministic head; phi fed back free, or grounded where the
@@ -215,7 +221,7 @@ def cpp_steps(view: PackView, cfg: TrainConfig, task, kin, stepper, psi: torch.T
         return None
     dt = stepper.store.dtype
     if dt is not None and (dt != torch.bfloat16 or stepper.wb[0].dtype != torch.float32):
-        return None  # bf16 products give float32 (lstm_step.h, low_bmm)
+        return None  # bf16 products give float32 (products.h, low_bmm)
     dtype = view.state_mean.dtype
     offset = _phi_offset(task, psi, dtype) if grounded else psi.new_zeros(*psi.shape[:-1], 3)
     if offset is None:

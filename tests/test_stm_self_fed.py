@@ -2,7 +2,7 @@
 of the loss (stm.mdn_fused), against the Python steps and stm.mdn's NLL they replace (the reference, itself held to a
 plain step-by-step unroll in tests/test_stm_speed_equivalence.py).
 
-Tolerances: the self-fed steps run the same ATen calls in the same order as the Python steps; the ground-truth
+Tolerances: the self-fed steps compute what the Python steps' ATen calls compute, in the same order; the ground-truth
 chunks run as a layer sequence where a single model's Python path calls oneDNN's fused layer, and the backward
 sums a few gradient contributions in another order (the feedback head's weight gradient: one product per segment
 instead of one per step), so results differ by float32 rounding: measured, losses within 1e-7 relative and

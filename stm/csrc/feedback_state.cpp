@@ -1,4 +1,4 @@
-// The fed-back state's elementwise part: see feedback_state.h. (Edit this file with the header: the build is keyed
+// What a self-fed step feeds back: see feedback_state.h. (Edit this file with the header: the build is keyed
 // on the sources only.)
 #include "feedback_state.h"
 
@@ -8,6 +8,7 @@
 #include <cmath>
 
 #include "rows.h"
+#include "vec_math.h"
 
 namespace stm_cpp {
 namespace {
@@ -54,36 +55,10 @@ void backward_row(const T* dx, const T* gq, const T* jac, const bool* mq, const 
 
 }  // namespace
 
-at::Tensor monomial_products(const at::Tensor& factors, const at::Tensor& index, int64_t degree) {
-  const auto f = factors.contiguous();
-  const auto ix = index.contiguous();
-  TORCH_CHECK(ix.scalar_type() == at::kLong && ix.numel() % degree == 0, "monomial_products: int64 index");
-  const int64_t N = f.size(0), F = f.size(1), S = ix.numel() / degree;
-  auto mono = at::empty({N, S}, f.options());
-  const int64_t* id = ix.data_ptr<int64_t>();
-  for (int64_t i = 0; i < ix.numel(); ++i) {
-    TORCH_CHECK(id[i] >= 0 && id[i] < F, "monomial_products: index out of range");
-  }
-  AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "monomial_products", [&] {
-    using T = scalar_t;
-    for (int64_t r = 0; r < N; ++r) {
-      const T* fr = f.data_ptr<T>() + r * F;
-      T* out = mono.data_ptr<T>() + r * S;
-      for (int64_t s = 0; s < S; ++s) {
-        T p = fr[id[s]];
-        for (int64_t d = 1; d < degree; ++d) p = p * fr[id[d * S + s]];
-        out[s] = p;
-      }
-    }
-  });
-  return mono;
-}
-
-void fed_joints(const Block& q_prev, const at::Tensor& pred, const Block& lower, const Block& upper,
-                const Block& mean, const Block& q, const Block& mask_q, const Block& x, const Block& mask_g) {
-  const int64_t K = pred.size(0), B = pred.size(1);
+void fed_joints(const Block& q_prev, const Block& pred, const Block& lower, const Block& upper, const Block& mean,
+                const Block& q, const Block& mask_q, const Block& x, const Block& mask_g, int64_t K, int64_t B) {
   const auto mq = rows<bool>(mask_q), mg = rows<bool>(mask_g);
-  AT_DISPATCH_FLOATING_TYPES(pred.scalar_type(), "fed_joints", [&] {
+  AT_DISPATCH_FLOATING_TYPES(pred.dtype, "fed_joints", [&] {
     using T = scalar_t;
     const auto qp = rows<T>(q_prev), pr = rows<T>(pred), lo = rows<T>(lower), hi = rows<T>(upper),
                mu = rows<T>(mean), qr = rows<T>(q), xr = rows<T>(x);
@@ -96,10 +71,10 @@ void fed_joints(const Block& q_prev, const at::Tensor& pred, const Block& lower,
   });
 }
 
-void fed_context(const at::Tensor& phi_src, const Block& offset, const Block& psi, int64_t psi_dim, const Block& mean,
-                 int64_t phi_start, const Block& x) {
-  const int64_t K = phi_src.size(0), B = phi_src.size(1), phi_dim = phi_src.size(2), P = psi_dim;
-  AT_DISPATCH_FLOATING_TYPES(phi_src.scalar_type(), "fed_context", [&] {
+void fed_context(const Block& phi_src, int64_t phi_dim, const Block& offset, const Block& psi, int64_t psi_dim,
+                 const Block& mean, int64_t phi_start, const Block& x, int64_t K, int64_t B) {
+  const int64_t P = psi_dim;
+  AT_DISPATCH_FLOATING_TYPES(phi_src.dtype, "fed_context", [&] {
     using T = scalar_t;
     const auto src = rows<T>(phi_src), off = rows<T>(offset), ps = rows<T>(psi), mu = rows<T>(mean),
                xr = rows<T>(x);
@@ -117,11 +92,10 @@ void fed_context(const at::Tensor& phi_src, const Block& offset, const Block& ps
 
 void fed_backward(const Block& dx, const Block& gq, const Block& jac, const Block& mask_q, const Block& mask_g,
                   const Block& idx, int64_t phi_start, int64_t phi_dim, int64_t mixtures, int64_t dims,
-                  const at::Tensor& gq_new, const Block& dout) {
-  const int64_t K = gq_new.size(0), B = gq_new.size(1);
+                  const Block& gq_new, const Block& dout, int64_t K, int64_t B, at::ScalarType dtype) {
   const auto mq = rows<bool>(mask_q), mg = rows<bool>(mask_g);
   const auto ix = rows<int64_t>(idx);
-  AT_DISPATCH_FLOATING_TYPES(gq_new.scalar_type(), "fed_backward", [&] {
+  AT_DISPATCH_FLOATING_TYPES(dtype, "fed_backward", [&] {
     using T = scalar_t;
     const auto d = rows<T>(dx), g = rows<T>(gq), jr = rows<T>(jac), gn = rows<T>(gq_new), out = rows<T>(dout);
     for (int64_t k = 0; k < K; ++k) {
@@ -134,6 +108,88 @@ void fed_backward(const Block& dx, const Block& gq, const Block& jac, const Bloc
       }
     }
   });
+}
+
+void component_mean(const Block& out, int64_t m, int64_t dims, const Block& idx, const Block& pred, int64_t K,
+                    int64_t B) {
+  const auto ix = rows<int64_t>(idx);
+  AT_DISPATCH_FLOATING_TYPES(out.dtype, "component_mean", [&] {
+    using T = scalar_t;
+    const auto o = rows<T>(out), pr = rows<T>(pred);
+    for (int64_t k = 0; k < K; ++k) {
+      for (int64_t b = 0; b < B; ++b) {
+        const T* r = o.at(k, b);
+        int64_t best = 0;
+        T top = r[0];
+        for (int64_t i = 1; i < m && !std::isnan(top); ++i) {
+          if (std::isnan(r[i]) || r[i] > top) {
+            top = r[i];
+            best = i;
+          }
+        }
+        ix.at(k, b)[0] = best;
+        const T* mu = r + m + best * dims;
+        std::copy(mu, mu + dims, pr.at(k, b));
+      }
+    }
+  });
+}
+
+TipKinematics::TipKinematics(const std::vector<at::Tensor>& fk, int64_t degree, int64_t slots, int64_t monomials,
+                             int64_t N)
+    : signs_(fk[0]), phases_(fk[1].contiguous()), index_(fk[2].contiguous()), coef_(fk[3]), row_sums_(fk[4]),
+      degree_(degree), slots_(slots), monomials_(monomials), N_(N) {
+  const int64_t F = signs_.size(1);
+  TORCH_CHECK(signs_.dim() == 2 && signs_.size(0) == JOINTS && phases_.numel() == F && coef_.size(1) == 24 &&
+                  row_sums_.size(0) == 12 && row_sums_.size(1) == 3,
+              "tip kinematics: signs (7, F), phases (F,), coef (M, 24), row_sums (12, 3)");
+  TORCH_CHECK(index_.scalar_type() == at::kLong && index_.numel() == degree * slots * monomials,
+              "tip kinematics: an int64 index of degree x slots x monomials");
+  const int64_t* id = index_.data_ptr<int64_t>();
+  for (int64_t i = 0; i < index_.numel(); ++i) TORCH_CHECK(id[i] >= 0 && id[i] < F, "tip kinematics: index range");
+  const auto opt = signs_.options();
+  factors_ = at::empty({N, F}, opt);
+  mono_ = at::empty({N, slots * monomials}, opt);
+  entries_ = at::empty({N * slots, 24}, opt);
+  prod_ = at::empty({N * slots, 12}, opt);
+}
+
+// sin(q @ signs + phases) (ATen's addmm and sin), the monomials' products (multiplied in the degree's order, as
+// ATen's prod), their coefficients' product, T's entries times p's, and their row sums: stm.fk._slots.
+void TipKinematics::run(const Mat& q, const Mat& out) {
+  const int64_t F = factors_.size(1), S = slots_ * monomials_, R = N_ * slots_;
+  const auto dt = factors_.scalar_type();
+  AT_DISPATCH_FLOATING_TYPES(dt, "tip_phases", [&] {
+    const scalar_t* ph = phases_.data_ptr<scalar_t>();
+    scalar_t* f = factors_.data_ptr<scalar_t>();
+    for (int64_t r = 0; r < N_; ++r) std::copy(ph, ph + F, f + r * F);
+  });
+  gemm(factors_, q, signs_, 1.0);
+  sin_into(factors_.data_ptr(), factors_.data_ptr(), N_ * F, dt);
+  const int64_t* id = index_.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(dt, "tip_monomials", [&] {
+    using T = scalar_t;
+    const T* f = factors_.data_ptr<T>();
+    T* mono = mono_.data_ptr<T>();
+    for (int64_t r = 0; r < N_; ++r) {
+      const T* fr = f + r * F;
+      T* o = mono + r * S;
+      for (int64_t s = 0; s < S; ++s) {
+        T p = fr[id[s]];
+        for (int64_t d = 1; d < degree_; ++d) p = p * fr[id[d * S + s]];
+        o[s] = p;
+      }
+    }
+  });
+  gemm(entries_, Mat(mono_.data_ptr(), dt, 1, R, monomials_, 0, monomials_, 1), coef_);
+  AT_DISPATCH_FLOATING_TYPES(dt, "tip_products", [&] {
+    using T = scalar_t;
+    const T* e = entries_.data_ptr<T>();
+    T* pr = prod_.data_ptr<T>();
+    for (int64_t r = 0; r < R; ++r)
+      for (int64_t c = 0; c < 12; ++c) pr[r * 12 + c] = e[r * 24 + c] * e[r * 24 + 12 + c];
+  });
+  gemm(out, prod_, row_sums_);
 }
 
 }  // namespace stm_cpp

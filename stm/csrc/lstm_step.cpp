@@ -3,6 +3,7 @@
 #include "lstm_step.h"
 
 #include "rows.h"
+#include "vec_math.h"
 
 #include <ATen/Dispatch.h>
 
@@ -10,30 +11,8 @@
 #include <cstdint>
 #include <cstring>
 
-// MKL's bf16 GEMM (row-major CBLAS), in the MKL that x86 libtorch links in; weak: absent elsewhere (null).
-extern "C" void cblas_gemm_bf16bf16f32(int layout, int trans_a, int trans_b, int m, int n, int k, float alpha,
-                                       const uint16_t* a, int lda, const uint16_t* b, int ldb, float beta, float* c,
-                                       int ldc) __attribute__((weak));
-
 namespace stm_cpp {
 namespace {
-
-constexpr int CBLAS_ROW_MAJOR = 101, CBLAS_NO_TRANS = 111, CBLAS_TRANS = 112;
-
-// A (K, R, C) operand as a row-major matrix per model: (tensor, transposed, leading dimension); a copy only where
-// neither of its last two dimensions is unit-stride.
-struct Operand {
-  Tensor t;
-  bool trans = false;
-  int64_t ld = 0;
-};
-
-Operand operand(const Tensor& t) {
-  const int64_t r = t.size(1), c = t.size(2);
-  if (t.stride(2) == 1 && t.stride(1) >= std::max<int64_t>(c, 1)) return {t, false, t.stride(1)};
-  if (t.stride(1) == 1 && t.stride(2) >= std::max<int64_t>(r, 1)) return {t, true, t.stride(2)};
-  return {t.contiguous(), false, c};
-}
 
 // The LSTM step's elementwise maths in plain loops, one pass before ATen's tanh and one after, instead of a
 // dozen ATen calls: the same arithmetic, operation for operation, as those calls of stm.lstm_step (addcmul(a, b,
@@ -122,31 +101,6 @@ Tensor bias_rows(const Tensor& b, int64_t P, int64_t Q) {
   return out;
 }
 
-void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulate) {
-  TORCH_CHECK(a.dim() == 3 && b.dim() == 3 && out.dim() == 3 && a.scalar_type() == at::kBFloat16 &&
-                  b.scalar_type() == at::kBFloat16 && out.scalar_type() == at::kFloat && out.stride(2) == 1,
-              "low_bmm: bf16 (K, M, P) @ (K, P, N) into float32 (K, M, N) rows");
-  const int64_t K = out.size(0), M = out.size(1), N = out.size(2), P = a.size(2);
-  if (cblas_gemm_bf16bf16f32 == nullptr) {  // ATen's bf16 product, its output rounded to bf16
-    const auto p = at::bmm(a, b);
-    if (accumulate) out.add_(p);
-    else out.copy_(p);
-    return;
-  }
-  const auto oa = operand(a), ob = operand(b);
-  const auto* pa = reinterpret_cast<const uint16_t*>(oa.t.data_ptr<at::BFloat16>());
-  const auto* pb = reinterpret_cast<const uint16_t*>(ob.t.data_ptr<at::BFloat16>());
-  float* pc = out.data_ptr<float>();
-  const int64_t ldc = std::max<int64_t>(out.stride(1), std::max<int64_t>(N, 1));
-  for (int64_t k = 0; k < K; ++k) {
-    cblas_gemm_bf16bf16f32(CBLAS_ROW_MAJOR, oa.trans ? CBLAS_TRANS : CBLAS_NO_TRANS,
-                           ob.trans ? CBLAS_TRANS : CBLAS_NO_TRANS, static_cast<int>(M), static_cast<int>(N),
-                           static_cast<int>(P), 1.0F, pa + k * oa.t.stride(0), static_cast<int>(oa.ld),
-                           pb + k * ob.t.stride(0), static_cast<int>(ob.ld), accumulate ? 1.0F : 0.0F,
-                           pc + k * out.stride(0), static_cast<int>(ldc));
-  }
-}
-
 namespace {
 
 // c10::BFloat16's rounding (to nearest even; NaN to a quiet NaN) on the bits, branch-free so that the loop
@@ -172,23 +126,17 @@ void to_low(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X)
   }
 }
 
-Tensor product(const Tensor& a, const Tensor& b) {
-  if (a.scalar_type() != at::kBFloat16) return at::bmm(a, b);
-  auto out = at::empty({a.size(0), a.size(1), b.size(2)}, a.options().dtype(at::kFloat));
-  low_bmm(out, a, b, false);
-  return out;
-}
-
 void step_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
                   const Block& o_dt, const Block& h, const Block& h2) {
   const int64_t K = tc.size(0), B = tc.size(1), H = tc.size(2);
+  sigmoid_block(sig, K, B, 4 * H);
   AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "step_pass1", [&] {
     const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), cn = rows<scalar_t>(c_new);
     for (int64_t k = 0; k < K; ++k)
       for (int64_t b = 0; b < B; ++b) pass1_row<scalar_t>(s.at(k, b), cr.at(k, b), cn.at(k, b), H);
   });
-  Tensor tanh_c = tc;  // out= takes a mutable handle
-  at::tanh_out(tanh_c, c_new);
+  TORCH_CHECK(c_new.is_contiguous() && tc.is_contiguous(), "step_forward: c_new, tc contiguous");
+  tanh_into(c_new.data_ptr(), tc.data_ptr(), c_new.numel(), c_new.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "step_pass2", [&] {
     const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), tr = rows<scalar_t>(tc), hr = rows<scalar_t>(h),
                h2r = rows<scalar_t>(h2), d = rows<scalar_t>(gd), od = rows<scalar_t>(o_dt);
@@ -230,15 +178,15 @@ void add_rows(const T* __restrict__ src, T* __restrict__ dst, int64_t X) {
   for (int64_t j = 0; j < X; ++j) dst[j] += src[j];
 }
 
-void add_row_sums(const Tensor& dg, const Tensor& db) {
-  TORCH_CHECK(dg.stride(2) == 1 && db.is_contiguous() && db.scalar_type() == dg.scalar_type(),
+void add_row_sums(const Mat& dg, const Tensor& db) {
+  TORCH_CHECK(dg.sc == 1 && db.is_contiguous() && db.scalar_type() == dg.dtype,
               "add_row_sums: rows of (K, N, X) into (K, 1, X)");
-  const int64_t K = dg.size(0), N = dg.size(1), X = dg.size(2);
-  AT_DISPATCH_FLOATING_TYPES(dg.scalar_type(), "add_row_sums", [&] {
-    const auto* src = dg.data_ptr<scalar_t>();
+  const int64_t K = dg.K, N = dg.R, X = dg.C;
+  AT_DISPATCH_FLOATING_TYPES(dg.dtype, "add_row_sums", [&] {
+    const auto* src = static_cast<const scalar_t*>(dg.p);
     auto* dst = db.data_ptr<scalar_t>();
     for (int64_t k = 0; k < K; ++k)
-      for (int64_t r = 0; r < N; ++r) add_rows<scalar_t>(src + k * dg.stride(0) + r * dg.stride(1), dst + k * X, X);
+      for (int64_t r = 0; r < N; ++r) add_rows<scalar_t>(src + k * dg.sk + r * dg.sr, dst + k * X, X);
   });
 }
 
@@ -248,16 +196,15 @@ void add_row_sums(const Tensor& dg, const Tensor& db) {
 // autograd, which adds them: one pass over the gradient per chunk and layer less. (Deferring all rows to one product
 // after the unroll, as the Python steps do, would copy every row once more into one tensor: as much time as it
 // saves.)
-void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db, const Tensor& xh_low,
-                     const Tensor& dg_low) {
-  if (!dw.defined()) {
-    dw = xh_low.defined() ? product(xh_low.transpose(1, 2), dg_low) : at::bmm(xh.transpose(1, 2), dg);
-    db = at::zeros({dg.size(0), 1, dg.size(2)}, dg.options());
-  } else if (xh_low.defined()) {
-    low_bmm(dw, xh_low.transpose(1, 2), dg_low, true);
-  } else {
-    at::baddbmm_out(dw, dw, xh.transpose(1, 2), dg);
+void weight_gradient(const Mat& xh, const Mat& dg, Tensor& dw, Tensor& db, const Mat& xh_low, const Mat& dg_low) {
+  const bool low = xh_low.p != nullptr, first = !dw.defined();
+  if (first) {
+    const auto opt = at::TensorOptions().dtype(dg.dtype);
+    dw = at::empty({dg.K, low ? xh_low.C : xh.C, dg.C}, opt);
+    db = at::zeros({dg.K, 1, dg.C}, opt);
   }
+  if (low) low_bmm(dw, xh_low.t(), dg_low, !first);
+  else gemm(dw, xh.t(), dg, first ? 0.0 : 1.0);
   add_row_sums(dg, db);
 }
 
@@ -304,15 +251,15 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
   const auto c_blocks = block_pair({K, B, H}, x.options());
   const auto tc = at::empty({K, B, H}, x.options());
   Tensor c = rows_ready(c0);
+  const Mat w_rec = w_low.defined() ? Mat(w_low).rows(I, H) : Mat(w_h);
   for (int64_t t = 0; t < n; ++t) {
-    auto sig = lay.sig.select(2, t);
+    const Block sig = slice(lay.sig, 2, t);
     if (w_low.defined()) {
       to_low(slice(lay.xh, 2, t, I), slice(lay.xh_low, 2, t, I), K, B, H);
-      low_bmm(sig, lay.xh_low.select(2, t).narrow(-1, I, H), w_low.narrow(1, I, H), true);
-    } else {
-      at::baddbmm_out(sig, sig, lay.xh.select(2, t).narrow(-1, I, H), w_h);  // the projection in place
+      low_bmm(Mat(sig, K, B, 4 * H), Mat(slice(lay.xh_low, 2, t, I), K, B, H), w_rec, true);
+    } else {  // the projection in place
+      gemm(Mat(sig, K, B, 4 * H), Mat(slice(lay.xh, 2, t, I), K, B, H), w_rec, 1.0);
     }
-    sig.sigmoid_();
     const Block up = k + 1 < layers.size() ? slice(layers[k + 1].xh, 2, t) : slice(out, 2, t);
     const Block next = t + 1 < n ? slice(lay.xh, 2, t + 1, I) : Block(h_last);
     step_forward(sig, c, c_blocks[t % 2], tc, slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), up, next);
@@ -371,27 +318,29 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const auto dg_low = w_low.defined() ? at::empty({K, B, n, 4 * H}, opt.dtype(at::kBFloat16)) : Tensor();
     auto dhs = block_pair({K, B, H}, opt);
     const auto dcs = block_pair({K, B, H}, opt);
+    const Mat w_recT(w_hT);
     for (int64_t t = n - 1; t >= 0; --t) {
-      const auto dg_t = dg.select(2, t);
+      const Block dg_t = slice(dg, 2, t);
       step_backward(slice(lay.sig, 2, t), slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), dh_rec,
                     g_out.defined() ? slice(g_out, 2, t) : Block(), dc, dg_t, dcs[t % 2]);
       dc = dcs[t % 2];
       if (w_low.defined()) {
-        to_low(slice(dg, 2, t), slice(dg_low, 2, t), K, B, 4 * H);
-        low_bmm(dhs[t % 2], dg_low.select(2, t), w_hT, false);
+        to_low(dg_t, slice(dg_low, 2, t), K, B, 4 * H);
+        low_bmm(dhs[t % 2], Mat(slice(dg_low, 2, t), K, B, 4 * H), w_recT, false);
       } else {
-        at::bmm_out(dhs[t % 2], dg_t, w_hT);
+        gemm(dhs[t % 2], Mat(dg_t, K, B, 4 * H), w_recT);
       }
       dh_rec = dhs[t % 2];
     }
-    auto dg_rows = dg.view({K, B * n, 4 * H});
+    const Mat dg_rows = rows_of(dg);
+    if (k > 0) g_out = at::empty({K, B, n, I}, opt);  // the layer below's d h: d x of all steps, one product
     if (w_low.defined()) {
-      const auto dl_rows = dg_low.view({K, B * n, 4 * H});
-      weight_gradient(Tensor(), dg_rows, dw[k], db[k], lay.xh_low.view({K, B * n, I + H}), dl_rows);
-      if (k > 0) g_out = product(dl_rows, w_low.narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
+      const Mat dl_rows = rows_of(dg_low);
+      weight_gradient(Mat(), dg_rows, dw[k], db[k], rows_of(lay.xh_low), dl_rows);
+      if (k > 0) low_bmm(rows_of(g_out), dl_rows, Mat(w_low).rows(0, I).t(), false);
     } else {
-      weight_gradient(lay.xh.view({K, B * n, I + H}), dg_rows, dw[k], db[k]);
-      if (k > 0) g_out = at::bmm(dg_rows, seq->ws[k].narrow(1, 0, I).transpose(1, 2)).view({K, B, n, I});
+      weight_gradient(rows_of(lay.xh), dg_rows, dw[k], db[k]);
+      if (k > 0) gemm(rows_of(g_out), dg_rows, Mat(seq->ws[k]).rows(0, I).t());
     }
     dh0[k] = dh_rec;
     dc0[k] = dc.defined() ? dc : at::zeros({K, B, H}, opt);

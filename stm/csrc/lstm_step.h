@@ -1,5 +1,6 @@
 // The LSTM stack of the C++ steps (stm/csrc/self_fed.cpp): one step's forward and backward on step blocks, and
-// runs of known inputs layer by layer, on ATen products and the step's elementwise maths in plain loops.
+// runs of known inputs layer by layer: per step no ATen call, the products issued to BLAS as ATen issues them
+// (products.h), the gate nonlinearities as ATen computes them (vec_math.h) and the rest in plain loops.
 //
 // Shapes: K models of a pack, batch B. h, c per layer (K, B, H); w per layer (K, I + H, 4H) with the gate columns
 // i, f, o, 2g (stm.lstm_step.gate_order); b (K, 1, 4H).
@@ -20,7 +21,9 @@
 #include <tuple>
 #include <vector>
 
+#include "products.h"
 #include "rows.h"
+#include "vec_math.h"
 
 namespace stm_cpp {
 
@@ -31,8 +34,9 @@ using Pair = std::array<Tensor, 2>;
 // Two contiguous blocks a run of steps alternates between (each step reads one and writes the other).
 Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options);
 
-// One LSTM step forward from the gate sigmoids sig (K, B, 4H): c_new, h (and a copy of h in h2 where given),
-// the saved gd, o_dt; tc (K, B, H) is scratch (tanh(c_new)). All are step blocks, written in place.
+// One LSTM step forward from the gates' pre-activations sig (K, B, 4H), replaced by their sigmoids in place (what
+// the backward reads): c_new, h (and a copy of h in h2 where given), the saved gd, o_dt; tc (K, B, H) is scratch
+// (tanh(c_new)); c_new and tc contiguous. All are step blocks, written in place.
 void step_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
                   const Block& o_dt, const Block& h, const Block& h2);
 // One LSTM step backward: d gates and grad_c (K, B, H), the gradient of the previous cell state, from
@@ -45,13 +49,6 @@ Tensor rows_ready(const Tensor& t);
 // added to. Row by row: ATen's copy of the broadcast bias costs several times as much.
 Tensor bias_rows(const Tensor& b, int64_t P, int64_t Q);
 
-// bf16 products (TrainConfig.matmul_dtype "bfloat16"): out (K, M, N) float32, its rows contiguous, = a @ b, or
-// += with accumulate; a (K, M, P), b (K, P, N) bfloat16, transposed views taken as they are. Through MKL's
-// bf16 x bf16 -> float32 GEMM where libtorch carries it (float32 accumulation and result: no bf16 rounding of
-// the output, which ATen's bf16 product rounds, and less time); else ATen's bf16 product, added or copied.
-void low_bmm(const Tensor& out, const Tensor& a, const Tensor& b, bool accumulate);
-// a @ b: at::bmm for float32 operands (the float32 path as it was), low_bmm's for bfloat16 ones.
-Tensor product(const Tensor& a, const Tensor& b);
 // X float32 columns of a step block into a bfloat16 one, rounded to nearest even as ATen's cast: per step and layer
 // an ATen copy's views and iterator set-up cost more than the conversion.
 void to_low(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X);
@@ -78,8 +75,8 @@ struct Sequence {
 // A layer's weight gradient from a chunk's rows ([x, h] (K, N, I + H), d gates (K, N, 4H)): dw, db undefined: made
 // here; defined: the unroll's sums so far, this chunk's added in place (stm.self_fed, _GradSums). With xh_low and
 // dg_low (the rows in bf16) the product takes those.
-void weight_gradient(const Tensor& xh, const Tensor& dg, Tensor& dw, Tensor& db, const Tensor& xh_low = Tensor(),
-                     const Tensor& dg_low = Tensor());
+void weight_gradient(const Mat& xh, const Mat& dg, Tensor& dw, Tensor& db, const Mat& xh_low = Mat(),
+                     const Mat& dg_low = Mat());
 // w_h, w_hT: per layer the recurrent rows of w, contiguous (K, H, 4H), and transposed, contiguous (K, 4H, H),
 // made once per unroll by the caller (the weights are views whose rows a copy must gather: per call, one copy each
 // per layer and chunk); empty lists: made here. low: each layer's w in bf16 for bf16 products (w_h, w_hT unused),

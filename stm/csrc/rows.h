@@ -5,6 +5,8 @@
 
 #include <ATen/ATen.h>
 
+#include <cstring>
+
 namespace stm_cpp {
 
 // A step block's rows: row (k, b) starts at p + k * sk + b * sb.
@@ -54,6 +56,24 @@ template <typename T>
 Rows<T> rows(const Block& b) {
   TORCH_CHECK(b.data == nullptr || b.dtype == c10::CppTypeToScalarType<T>::value, "a step block of another dtype");
   return {static_cast<T*>(b.data), b.sk, b.sb};
+}
+
+// The block's columns from `col` on (a view of the same rows).
+inline Block at_col(Block b, int64_t col) {
+  if (b.data != nullptr) b.data = static_cast<char*>(b.data) + col * static_cast<int64_t>(c10::elementSize(b.dtype));
+  return b;
+}
+
+// X columns of every row of src into dst (K, B rows): a copy, without an ATen copy's views and iterator set-up.
+inline void copy_rows(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X) {
+  TORCH_CHECK(src.dtype == dst.dtype, "copy_rows: blocks of one dtype");
+  const int64_t size = static_cast<int64_t>(c10::elementSize(src.dtype)), row = X * size;
+  for (int64_t k = 0; k < K; ++k) {
+    for (int64_t b = 0; b < B; ++b) {
+      std::memcpy(static_cast<char*>(dst.data) + (k * dst.sk + b * dst.sb) * size,
+                  static_cast<const char*>(src.data) + (k * src.sk + b * src.sb) * size, row);
+    }
+  }
 }
 
 }  // namespace stm_cpp
