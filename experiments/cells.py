@@ -4,6 +4,7 @@ model/train/eval configs and the hash that identifies it across re-runs."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,7 +46,7 @@ class Cell:
         out = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self.eval).items()}
         return hashed_eval(out)  # options at their default absent: cells of studies before them keep their hashes
 
-    @property
+    @functools.cached_property  # (a frozen cell: computed once; a study of 20,000 cells asks for each twice)
     def config_hash(self) -> str:
         return config_hash(self.resolved)
 
