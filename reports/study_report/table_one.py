@@ -1,13 +1,12 @@
 """Table I as the paper prints it, ours beside the paper's: one row per evaluated task and variant, the cells of
 each training task from the study named for it (a RESULTS template's {{ table_one("reacher=paper", ...) }}; a
 study's own report takes every task from the study itself), with each cell's seed-level interval, each seed's
-rate and the paper's value. Where a study's rollouts record both pick-and-place criteria per episode (STRICT_KEYS),
-a column gives the strict criterion's rate. The figure: bars for ours with the seed-level interval, the paper's
+rate and the paper's value. Where a study judged pick-and-place on the block, a column gives the strict criterion's
+rate (reports.study_report.criteria). The figure: bars for ours with the seed-level interval, the paper's
 values as markers, one group per evaluated task that has a finished cell (no empty panel)."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -19,13 +18,17 @@ from reports.data.seed_aggregates import aggregate_success
 from reports.data.store import Study, order_variants
 from reports.plotting import FigureResult, gap, plt, save, variant_color
 from reports.study_report import tables
+from reports.study_report.criteria import (
+    PLACE_TASK,
+    STRICT_COLUMN,
+    STRICT_NOTE,
+    cell_strict_rate,
+    judged_on_placed,
+    strict_cell,
+)
 from reports.study_report.tables import GAP, Table
 
 NAME, TITLE = "table_one", "Table I: success rate, ours beside the paper's"
-# the per-episode records of rollouts judged by both pick-and-place criteria: `placed` (the block at the goal) and
-# `success_strict` (every check of the task); rollouts without both were judged by the strict one alone
-STRICT_KEYS = ("placed", "success_strict")
-STRICT_COLUMN = "strict criterion"
 
 
 def own_sources(study: Study) -> dict[str, Study]:
@@ -54,20 +57,6 @@ def eval_tasks(sources: dict[str, Study]) -> list[str]:
     return first + sorted((t for t in dict.fromkeys(found) if t not in first), key=lambda t: rank.get(t, len(rank)))
 
 
-def _strict(study: Study, runs: pd.DataFrame, eval_task: str) -> dict:
-    """The strict criterion over the seeds whose rollouts record both criteria (every finished seed must), as
-    success_over_seeds' columns prefixed strict_; empty when the rollouts do not record them."""
-    per_seed = {}
-    for run in runs.itertuples():
-        arrays = study.rollouts(run.run_id, eval_task)
-        if arrays is None or not set(STRICT_KEYS) <= set(arrays):
-            return {}
-        strict = np.asarray(arrays["success_strict"], float)
-        per_seed[int(run.seed)] = (float(strict.mean()), len(strict))
-    agg = stats.success_over_seeds(per_seed) if per_seed else {}
-    return {f"strict_{k}": v for k, v in agg.items()}
-
-
 def table_one_rows(sources: dict[str, Study]) -> pd.DataFrame:
     """One row per (evaluated task, variant): aggregate_success's columns for the cell in its source study, the
     study, the paper's value and, where its rollouts record both criteria, the strict criterion's strict_*."""
@@ -80,15 +69,9 @@ def table_one_rows(sources: dict[str, Study]) -> pd.DataFrame:
         agg = aggregate_success(study.eval_metrics(), study.children, variants, [eval_task], study.model_task_of,
                                 study.seeds)
         for r in agg.to_dict("records"):
-            runs = study.ok[(study.ok["task"] == model_task_of(eval_task)) & (study.ok["variant"] == r["variant"])]
-            runs = runs[runs["seed"].isin(list(r["seed_rates"]))].sort_values("seed")
             rows.append({**r, "study": study.name, "paper": paper.paper_success(r["variant"], eval_task),
-                         **(_strict(study, runs, eval_task) if r["seeds"] else {})})
+                         **cell_strict_rate(study, r)})
     return pd.DataFrame(rows)
-
-
-def _with_interval(mean: float, low: float, high: float) -> str:
-    return f"{stats.pct(mean)} ({stats.interval(low, high)})" if not math.isnan(low) else stats.pct(mean)
 
 
 def table_one_table(rows: pd.DataFrame, sources: dict[str, Study]) -> Table:
@@ -108,8 +91,7 @@ def table_one_table(rows: pd.DataFrame, sources: dict[str, Study]) -> Table:
                  stats.interval(r["seed_low"], r["seed_high"]) if have else "–",
                  " / ".join(stats.pct(v) for v in r["seed_rates"].values()) or "–"]
         if strict:
-            cells.append(_with_interval(r["strict_mean"], r["strict_seed_low"], r["strict_seed_high"])
-                         if not pd.isna(r.get("strict_mean")) else "–")
+            cells.append(strict_cell(r))
         out.append([*cells, stats.pct(r["paper"]) if r["paper"] is not None else "–", r["study"]])
     return Table(NAME, TITLE, columns, out, _notes(rows, sources, strict), rows.drop(columns=["seed_rates"]))
 
@@ -134,10 +116,14 @@ def _notes(rows: pd.DataFrame, sources: dict[str, Study], strict: bool) -> list[
              "simulation, pick-and-place and stacking on the real robot; – where the paper gives no success rate.",
              "† some seeds missing or failed (statistics over the rest); gap: the study listed for the task holds "
              "no finished run of the cell."]
+    place = sources.get(PLACE_TASK)
+    if place is not None and not judged_on_placed(place.ok[place.ok["task"] == PLACE_TASK]):
+        judged = [t for t in by_study[place.name][1] if t in evaluation_tasks(PLACE_TASK)]
+        notes.append(f"{', '.join(map(paper.task_label, judged))} in `{place.name}`: ours is the strict criterion "
+                     "(every check, the last grip command open as well); the study did not judge its rollouts on "
+                     "the block alone.")
     if strict:
-        notes.append(f"{STRICT_COLUMN}: the rate under every check of the task (the rollouts' success_strict), "
-                     "mean over seeds (seed-level 95 %), where the rollouts also record the lenient `placed`; "
-                     "where they do not, ours is the strict criterion.")
+        notes.append(STRICT_NOTE)
     notes += [f"{paper.variant_label(r.variant)} / {paper.task_label(r.eval_task)}: {r.note}"
               for r in rows.itertuples() if r.note]
     return notes
@@ -197,5 +183,5 @@ def train_time_across(sources: dict[str, Study]) -> Table:
                  ["task", "study", "iterations", *map(paper.variant_label, variants)], rows, [tables.TRAIN_TIME_NOTE])
 
 
-__all__ = ["NAME", "STRICT_KEYS", "TITLE", "eval_tasks", "own_sources", "table_one_figure", "table_one_rows",
+__all__ = ["NAME", "TITLE", "eval_tasks", "own_sources", "table_one_figure", "table_one_rows",
            "table_one_table", "train_time_across"]
