@@ -29,6 +29,7 @@ from reports.study_report.criteria import (
 from reports.study_report.tables import GAP, Table
 
 NAME, TITLE = "table_one", "Table I: success rate, ours beside the paper's"
+FIGURE_TITLE = "Table I as bars: ours with its seed-level interval, the paper's as markers"  # not the table's again
 
 
 def own_sources(study: Study) -> dict[str, Study]:
@@ -133,7 +134,7 @@ def table_one_figure(rows: pd.DataFrame, folder: Path) -> FigureResult:
     """One group of bars per evaluated task with a finished cell, one bar per variant: ours (mean over seeds) with
     the seed-level 95 % interval, the paper's value as a marker; a cell without a finished run says gap."""
     if rows.empty or not rows["seeds"].any():
-        return gap(NAME, TITLE, "no finished cell in the listed studies")
+        return gap(NAME, FIGURE_TITLE, "no finished cell in the listed studies")
     tasks = [t for t in dict.fromkeys(rows["eval_task"]) if rows.loc[rows["eval_task"] == t, "seeds"].any()]
     variants = list(dict.fromkeys(rows["variant"]))
     width = 0.8 / len(variants)
@@ -162,7 +163,7 @@ def table_one_figure(rows: pd.DataFrame, folder: Path) -> FigureResult:
     handles, labels = ax.get_legend_handles_labels()
     order = sorted(range(len(labels)), key=lambda i: labels[i].startswith("paper"))
     ax.legend([handles[i] for i in order], [labels[i] for i in order], loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    return save(fig, folder, NAME, TITLE)
+    return save(fig, folder, NAME, FIGURE_TITLE)
 
 
 def train_time_across(sources: dict[str, Study]) -> Table:
