@@ -1,6 +1,6 @@
-"""One ablation cell in one process: train (resuming from the run's checkpoint artifact if
-there is one), evaluate on every task the model serves, log everything to the cell's MLflow
-child run through MlflowClient. Runs in the main process (1 worker) or in a spawned worker.
+"""One ablation cell in one process: train (resuming from the run's checkpoint artifact if there is one; else, asked,
+from its kept weights: experiments/weights_resume.py), evaluate on every task the model serves, log everything to the
+cell's MLflow child run through MlflowClient. Runs in the main process (1 worker) or in a spawned worker.
 
 `CellRun` is what a cell's run needs around its training, shared with experiments/pack.py
 (a cell group's seeds trained together): `start` (RUNNING, params, config artifact, the
@@ -224,6 +224,7 @@ class CellRun:
     def __init__(self, cell: Cell, client: Client, run_id: str):
         self.cell, self.client, self.run_id = cell, client, run_id
         self.resumed_from = 0
+        self.from_weights = False  # resuming from kept weights (experiments/weights_resume.py), not a checkpoint
         self.work: Path | None = None
         self.ckpt_path: Path | None = None
         self.buffer: MetricBuffer | None = None
@@ -257,6 +258,11 @@ class CellRun:
             else:
                 log.info("cell %s resumes from its checkpoint at iteration %d", cell.key, self.resumed_from)
                 set_tags(client, run_id, {"resumed_from_iteration": self.resumed_from})
+        else:
+            from experiments.weights_resume import prepare_from_weights
+
+            at = prepare_from_weights(client, run_id, cell, self.ckpt_path, work / "weights")
+            self.resumed_from, self.from_weights = at or 0, at is not None
         previous = client.get_run(run_id).data.tags.get(TRAINED_ON, "")
         from stm.cpp_ext import step_kernel
         from stm.device import resolve_device
@@ -266,8 +272,10 @@ class CellRun:
         if route != previous:
             set_tags(client, run_id, {TRAINED_ON: route})
         # a resumed run recomputes the steps after its checkpoint exactly: drop the ones already logged
-        # (a retrain from scratch recomputes the same values too: the seed is the cell's)
-        logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) if fetched is not None else -1
+        # (a retrain from scratch recomputes the same values too: the seed is the cell's). One resumed from kept
+        # weights computes other values after them, yet the ones already logged stay: a step is logged once
+        logged = last_logged_step(client, run_id, ("train/loss", "val/metric")) \
+            if fetched is not None or self.from_weights else -1
         self.buffer = MetricBuffer(client, run_id, skip_through=logged)
 
     def check_checkpoint(self, task) -> None:
@@ -281,9 +289,17 @@ class CellRun:
         try:
             check_resumable(ckpt, self.cell.model, self.cell.train, task, self.ckpt_path)
         except ValueError as exc:
+            if self.from_weights:
+                raise CheckpointMismatch(f"the {WEIGHTS_DIR}/{self.resumed_from}/{WEIGHTS_NAME} artifact of run "
+                                         f"{self.run_id} {_mismatch(exc, ckpt, self.cell)} (another cell's?); to "
+                                         "train this cell from scratch, re-run without --resume-from-weights") from None
             raise CheckpointMismatch(f"the checkpoint artifact of run {self.run_id} {_mismatch(exc, ckpt, self.cell)} "
                                      f"(another cell's?); to discard it and train this cell from scratch: "
                                      f"{discard_command(self.run_id)}, then re-run the study") from None
+        if self.from_weights:
+            from experiments.weights_resume import mark_resumed
+
+            mark_resumed(self.client, self.run_id, self.cell, self.resumed_from)
 
     def on_checkpoint(self, path: Path, iteration: int, signal: bool = True) -> None:
         """The checkpoint into the store; then the fault tests' hook unless `signal` is False

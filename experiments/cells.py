@@ -27,6 +27,7 @@ class Cell:
     data: dict[str, Any] = field(default_factory=dict)  # training task's constructor options (e.g. n_demos)
     keep_checkpoints: int = 0  # StudyConfig.keep_checkpoints (not hashed: it shapes no result)
     device: str = "cpu"  # StudyConfig.device: where it trains (not hashed; the run's param "device")
+    resume_from_weights: bool = False  # StudyConfig.resume_from_weights (not hashed: experiments/weights_resume.py)
 
     @property
     def key(self) -> str:
@@ -80,5 +81,5 @@ def build_cells(cfg: StudyConfig) -> list[Cell]:
                 cells.append(Cell(task=task, variant=variant, seed=seed, model=model, train=train, eval=cfg.eval,
                                   eval_tasks=eval_tasks, profile=cfg.profile, study_name=study_name,
                                   data=cfg.data_options(task), keep_checkpoints=cfg.keep_checkpoints,
-                                  device=cfg.device))
+                                  device=cfg.device, resume_from_weights=cfg.resume_from_weights))
     return cells

@@ -74,6 +74,11 @@ def build_parser() -> argparse.ArgumentParser:
                     f"{RULE}")
     ab.add_argument("--yes", action="store_true", help=f"run a study of more than {MAX_CELLS:,} cells (without it "
                     "such a study is refused: a typo in --seeds would otherwise fill the store)")
+    ab.add_argument("--resume-from-weights", action="store_true", help="a cell whose run has no resume checkpoint "
+                    "but kept models (weights_at/N/, from an imported export with models) resumes at the largest N "
+                    "below train.iters from those weights, with a fresh optimiser and random streams (run tag "
+                    "resumed_from_weights; not the run an uninterrupted cell would have been); a cell with a "
+                    "checkpoint resumes from it regardless")
     ab.add_argument("--worker", action="store_true", help="pull cells from a queue shared with other worker "
                     "commands (other hosts too; see docs/scale-out.md); --workers K local processes")
     ab.add_argument("--queue", default=None, help="with --worker: Optuna RDB URL of the cell queue, e.g. "
@@ -123,7 +128,8 @@ def load_config(args: argparse.Namespace) -> StudyConfig:
     if args.command == "ablation":
         cfg = load_profile(args.profile, args.overrides, tasks=_split(args.tasks), variants=_split(args.variants),
                            seeds=args.seeds, workers=args.workers, pack=args.pack,
-                           study_name=args.study_name, device=device)
+                           study_name=args.study_name, device=device,
+                           resume_from_weights=args.resume_from_weights or None)
         checked_device(cfg.device)  # a profile's or --set device
         _check_cell_count(cfg, args.yes)
         return cfg

@@ -79,6 +79,7 @@ class StudyConfig:
     # where the cells train: auto | cpu | cuda | cuda:N (stm.device); --device; not hashed (the same study on
     # any machine), recorded as each run's param "device"
     device: str = "cpu"
+    resume_from_weights: bool = False  # --resume-from-weights (experiments/weights_resume.py); not hashed
     study_name: str = ""  # the parent run's name; load_profile derives it (see derived_study_name)
     model: dict[str, Any] = field(default_factory=dict)  # the profile's (and --set) ModelConfig values
     train: dict[str, Any] = field(default_factory=dict)  # ... TrainConfig values
@@ -136,7 +137,7 @@ class StudyConfig:
 
     def study_hash(self) -> str:
         """Hash of everything that shapes results (not tasks/variants/seeds, which select cells, nor
-        workers/pack/keep_checkpoints/device)."""
+        workers/pack/keep_checkpoints/device/resume_from_weights)."""
         d = self.to_dict()
         d["eval"] = hashed_eval(d["eval"])  # options at their default absent, as in Cell.eval_dict: earlier hashes stay
         for key in TrainConfig.UNHASHED:  # a route, as in Cell.resolved: the same study on either
@@ -295,7 +296,6 @@ def set_path(raw: dict[str, Any], path: list[str], value: Any) -> None:
 
 
 # ---------------------------------------------------------------- validation
-
 
 def from_dict(raw: dict[str, Any]) -> StudyConfig:
     """A study config from plain data (a profile with its overrides, or to_dict's output)."""
