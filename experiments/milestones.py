@@ -113,11 +113,9 @@ def kept_iterations(client: Client, run_id: str) -> list[int]:
 def kept_models(client: Client, run_id: str) -> dict[int, str]:
     """The run's models by iteration: its kept checkpoints, and the weights an imported export with models brought
     (weights_at/<iteration>/weights.pt) where no checkpoint was kept at that iteration (the same weights)."""
-    out = {}
-    for f in client.list_artifacts(run_id, WEIGHTS_DIR):
-        name = Path(f.path).name
-        if f.is_dir and name.isdigit():
-            out[int(name)] = f"{WEIGHTS_DIR}/{name}/{WEIGHTS_NAME}"
+    from experiments.weights_resume import weights_iterations
+
+    out = {it: f"{WEIGHTS_DIR}/{it}/{WEIGHTS_NAME}" for it in weights_iterations(client, run_id)}
     out.update({it: f"{KEPT_CHECKPOINT_DIR}/{it}/{CHECKPOINT_NAME}" for it in kept_iterations(client, run_id)})
     return dict(sorted(out.items()))
 
