@@ -27,6 +27,7 @@ from experiments.pack import pack_units, run_unit
 from experiments.runtime.claims import Claimed, claimed_cell, is_live
 from experiments.runtime.processes import default_workers, training_threads, worker_pool
 from experiments.runtime.schedule import prepare_datasets, run_scheduled
+from experiments.runtime.spread import IdleSlots, lent
 from experiments.runtime.store_faults import StoreFault, fault_reason
 from experiments.runtime.tracking import (
     ABLATION,
@@ -186,9 +187,9 @@ def run_study(cfg: StudyConfig, progress: bool | None = None) -> StudyOutcome:
 
 def _run_cells(cfg: StudyConfig, uri: str, client: Client, outcome: StudyOutcome, todo: list[tuple[Cell, str]],
                progress: bool | None) -> None:
-    workers = cfg.workers or default_workers()
-    units = pack_units(todo, cfg.pack, workers)
-    workers = max(1, min(workers, len(units))) if units else 1
+    budget = cfg.workers or default_workers()  # busy processes at most: workers, and the idle ones' evaluation helpers
+    units = pack_units(todo, cfg.pack, budget)
+    workers = max(1, min(budget, len(units))) if units else 1
     interactive = sys.stderr.isatty() if progress is None else progress
     log.info("study %r: %d cells (%d to run in %d job(s), %d done) with %d worker(s); store %s", outcome.study_name,
              len(todo) + len(outcome.skipped), len(todo), len(units), len(outcome.skipped), workers, uri)
@@ -201,12 +202,13 @@ def _run_cells(cfg: StudyConfig, uri: str, client: Client, outcome: StudyOutcome
     try:
         if workers == 1:
             prepare_datasets([cell for cell, _ in todo])  # once, here, before any worker needs them
-            for unit in units:
-                got = run_unit(*_unit_args(unit), uri, interactive, level, training_threads(), *claim, False)
-                _record_unit(outcome, unit, got, bar, len(todo), interactive, held)
-                client.check_store()
+            with lent(IdleSlots(budget - 1) if budget > 1 else None):  # this process runs the unit: the rest idle
+                for unit in units:
+                    got = run_unit(*_unit_args(unit), uri, interactive, level, training_threads(), *claim, False)
+                    _record_unit(outcome, unit, got, bar, len(todo), interactive, held)
+                    client.check_store()
         else:
-            _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held, client)
+            _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held, client, budget)
         for cell, run_id in held:  # cells another command of this study trains: wait for them
             got = claimed_cell(cell, uri, run_id, interactive, level, training_threads(), *claim, True)
             _record(outcome, cell, run_id, got, bar, len(todo), interactive, held)
@@ -268,8 +270,9 @@ def _record_unit(outcome: StudyOutcome, unit: list[tuple[Cell, str]], got: list[
         _record(outcome, cell, run_id, g, bar, total, interactive, held)
 
 
-def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held, client) -> None:
-    """Each unit (a cell, or a cell group's seeds packed: experiments/pack.py) in a worker process."""
+def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, held, client, budget) -> None:
+    """Each unit (a cell, or a cell group's seeds packed: experiments/pack.py) in a worker process; `budget` busy
+    processes at most (experiments/runtime/spread.py)."""
     total = sum(len(u) for u in units)
 
     def record(unit, fut) -> None:
@@ -286,7 +289,7 @@ def _run_parallel(units, uri, workers, outcome, bar, level, interactive, claim, 
         client.check_store()
 
     try:
-        with worker_pool(workers) as pool:
+        with worker_pool(workers, budget) as pool:
             # datasets built here meanwhile, so that no two workers build the same one (experiments.runtime.schedule)
             run_scheduled(units, workers, lambda unit: pool.submit(run_unit, *_unit_args(unit), uri, False, level,
                                                                    training_threads(), *claim, False), record)

@@ -49,7 +49,8 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="override any config field, e.g. --set train.iters=2000 --set per_task.pick-place.model."
                         "mixtures=20 (repeatable)")
     p.add_argument("--workers", type=int, default=None,
-                   help="worker processes (default: $ACRMDN_WORKERS, else one per core)")
+                   help="worker processes, busy ones at most: an evaluating cell plays its physics on the idle "
+                        "ones too (default: $ACRMDN_WORKERS, else one per core)")
     add_threads_option(p)
     add_device_option(p, "train and roll out")
     p.add_argument("--dry-run", action="store_true", help="check the config and the study name, print what would "

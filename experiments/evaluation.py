@@ -2,7 +2,8 @@
 `stm.rollout.generate`, execution in pybullet with `stm.rollout.evaluate`, and the
 metrics of the MLflow schema (success with its Wilson interval, every per-rollout metric's
 mean, the task's own breakdowns, timings). Each call builds its own tasks and pybullet
-scenes, so it is safe in parallel worker processes.
+scenes, so it is safe in parallel worker processes; its physics spreads over the study's idle worker
+slots (experiments/runtime/spread.py), every per-episode result as played alone.
 
 Protocol: each training seed is evaluated on its own episodes (`episode_seed`), and a model
 trained to feed back samples of its mixture is evaluated sampling (`rollout_feedback`). The eval
@@ -26,6 +27,7 @@ import numpy as np
 from envs.figure_files import save_figure
 from experiments.eval_sweep_config import SPLITS, VALIDATION_SEED_OFFSET
 from experiments.mode_repeats import mode_metrics, repeat_rollouts, task_modes
+from experiments.runtime.spread import physics_spread
 from experiments.stats import run_success_metrics
 
 log = logging.getLogger(__name__)
@@ -102,7 +104,7 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: Mapping[str, Any], *,
     trained distribution); train_feedback, temperature: the training config's (see
     rollout_feedback); timings: also time one-at-a-time generation and the IK expert."""
     from envs.tasks import task_class
-    from stm.rollout import evaluate, generate
+    from stm.rollout import generate
 
     metrics: dict[str, float] = {}
     details = []
@@ -114,29 +116,30 @@ def evaluate_model(model, eval_tasks: list[str], eval_cfg: Mapping[str, Any], *,
         gen_kwargs["temperature"] = temperature
     ep_seed = episode_seed(split_seed(eval_cfg), seed)
     repeats = int(eval_cfg.get("mode_repeats", 0) or 0)
-    for name in eval_tasks:
-        task = task_class(name).for_evaluation(data, eval_cfg)
-        episodes = task.episodes(int(eval_cfg["rollouts"]), ep_seed)
-        rollouts = generate(model, task, episodes, **gen_kwargs)
-        start = time.perf_counter()
-        results = evaluate(task, rollouts, episodes)
-        phys = time.perf_counter() - start
-        gen_seconds += rollouts.seconds
-        phys_seconds += phys
-        n_traj += len(episodes)
-        m = task_metrics(task, results, episodes)
-        m[f"{name}/episode_seed"] = float(ep_seed)
-        detail = TaskEvaluation(name, episodes, rollouts.q, results, m, seed=seed, episode_seed=ep_seed,
-                                feedback=feedback)
-        if repeats and task_modes(task):  # after the ordinary evaluation: its rollout is repeat 0, unchanged
-            detail.modes = repeat_rollouts(model, task, episodes, results, gen_kwargs, repeats)
-            m.update(mode_metrics(name, task_modes(task), np.asarray(detail.modes["mode"])))
-        metrics.update(m)
-        if timings:
-            detail.timing = _timing(model, task, episodes, rollouts, gen_kwargs)
-        details.append(detail)
-        log.info("evaluated %s: %s", name, {k: round(v, 3) for k, v in m.items() if "success_rate" in k
-                                            or "final_distance" in k})
+    with physics_spread() as spread:  # the physics here and on the study's idle worker slots (runtime.spread)
+        for name in eval_tasks:
+            task = task_class(name).for_evaluation(data, eval_cfg)
+            episodes = task.episodes(int(eval_cfg["rollouts"]), ep_seed)
+            rollouts = generate(model, task, episodes, **gen_kwargs)
+            start = time.perf_counter()
+            results = spread.evaluate(task, rollouts, episodes)  # as stm.rollout.evaluate, on idle slots too
+            phys = time.perf_counter() - start
+            gen_seconds += rollouts.seconds
+            phys_seconds += phys
+            n_traj += len(episodes)
+            m = task_metrics(task, results, episodes)
+            m[f"{name}/episode_seed"] = float(ep_seed)
+            detail = TaskEvaluation(name, episodes, rollouts.q, results, m, seed=seed, episode_seed=ep_seed,
+                                    feedback=feedback)
+            if repeats and task_modes(task):  # after the ordinary evaluation: its rollout is repeat 0, unchanged
+                detail.modes = repeat_rollouts(model, task, episodes, results, gen_kwargs, repeats)
+                m.update(mode_metrics(name, task_modes(task), np.asarray(detail.modes["mode"])))
+            metrics.update(m)
+            if timings:
+                detail.timing = _timing(model, task, episodes, rollouts, gen_kwargs)
+            details.append(detail)
+            log.info("evaluated %s: %s", name, {k: round(v, 3) for k, v in m.items() if "success_rate" in k
+                                                or "final_distance" in k})
     single = [d.timing["stm_seconds_per_traj"] for d in details if d.timing]
     ik = [d.timing["ik_seconds_per_traj"] for d in details if "ik_seconds_per_traj" in d.timing]
     ik_batched = [d.timing["ik_batched_seconds_per_traj"] for d in details

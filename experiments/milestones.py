@@ -326,7 +326,7 @@ def add_parser(sub) -> None:
     p.add_argument("--rollouts", type=int, default=None, help="episodes per seed and task (default: the cell's)")
     p.add_argument("--iterations", type=int, nargs="+", default=None, metavar="N",
                    help="only the checkpoints kept at these iterations (default: all)")
-    p.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="evaluation processes, busy ones at most (default 1)")
     add_threads_option(p)
     add_device_option(p, "roll out")
     p.add_argument("--feedback", choices=FEEDBACKS, default=None,

@@ -19,6 +19,9 @@ or SQLite state), and stopped with their main process.
   its pool's shutdown ends them. Ctrl-C in a terminal reaches the workers too: a worker acts on the
   first interrupt only, so the second (the main process's) cannot cut its checkpoint short. A worker
   still busy GRACE seconds after the stop exits anyway.
+- Busy processes: a pool's workers share `budget` slots (IdleSlots; the study's --workers, at least the pool's size)
+  and each holds one while it runs a job; a cell evaluating meanwhile borrows the idle ones for its physics
+  (experiments/runtime/spread.py), so that no more than `budget` processes are busy at once.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 
 from experiments.config_errors import ConfigError
+from experiments.runtime.spread import IdleSlots, lend, lent_slots
 
 # seconds an interrupted worker gets to checkpoint its cells and mark its runs before it exits anyway: a
 # pick-and-place pack stores a checkpoint of several MB per seed, on a store other workers write to as well
@@ -152,11 +156,12 @@ def die_with_parent() -> int:
         return 0
 
 
-def _init(parent: int, stop) -> None:
+def _init(parent: int, stop, slots: IdleSlots | None = None) -> None:
     die_with_parent()
     if os.getppid() != parent:  # the main process died before the kernel was told
         os._exit(1)
     signal.signal(signal.SIGINT, _on_sigint)
+    lend(slots)
     threading.Thread(target=_watch, args=(parent, stop), name="parent-watch", daemon=True).start()
 
 
@@ -166,30 +171,34 @@ def _call(fn: Callable, *args):
     stays whole, so the other workers finish their checkpoints (see the module docstring)."""
     if _stopping.is_set():
         raise KeyboardInterrupt
-    _busy.set()
-    try:
-        return fn(*args)
-    finally:
-        _busy.clear()
+    slots = lent_slots()
+    with slots.held(_stopping.is_set) if slots is not None else contextlib.nullcontext():  # this worker's slot
+        _busy.set()
+        try:
+            return fn(*args)
+        finally:
+            _busy.clear()
 
 
 class WorkerPool:
-    """ProcessPoolExecutor whose workers stop with the main process (see the module docstring)."""
+    """ProcessPoolExecutor whose workers stop with the main process and keep at most `budget` (default: workers)
+    processes busy (see the module docstring)."""
 
-    def __init__(self, workers: int):
+    def __init__(self, workers: int, budget: int | None = None):
         _child_thread_env()
         ctx = mp.get_context("spawn")
         self.stop = ctx.Event()
+        self.slots = IdleSlots(max(workers, budget or workers), ctx)
         self.executor = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init,
-                                            initargs=(os.getpid(), self.stop))
+                                            initargs=(os.getpid(), self.stop, self.slots))
 
     def submit(self, fn: Callable, *args) -> Future:
         return self.executor.submit(_call, fn, *args)
 
 
 @contextlib.contextmanager
-def worker_pool(workers: int) -> Iterator[WorkerPool]:
-    pool = WorkerPool(workers)
+def worker_pool(workers: int, budget: int | None = None) -> Iterator[WorkerPool]:
+    pool = WorkerPool(workers, budget)
     try:
         yield pool
     except BaseException:  # Ctrl-C or an error in the main process: stop the workers now
