@@ -42,19 +42,48 @@ def run_in_process(module: str, argv: list[str], cwd: Path, log_level: int | Non
     """`python -m <module> ARGV` ("experiments" or "reports") in this process, in `cwd`: its exit code and stderr,
     with the log lines at `log_level` and above among them where one is given (None: the loggers untouched).
     Cheaper than a subprocess where a property test runs hundreds of command lines."""
+    code, _, err = _in_process(module, argv, cwd, log_level, "%(message)s")
+    return code, err
+
+
+def run_cli_in_process(args: list[str], store: Path, module: str = "experiments",
+                       **extra_env: str) -> subprocess.CompletedProcess:
+    """run_cli's command in this process: its exit code, stdout and stderr (with the INFO log lines, as the command
+    line prints them). A study run so costs its own work only: a `python -m experiments` process first pays ~10 CPU-s
+    of imports and first-use set-ups that this process has made already. For commands whose outcome a test reads
+    from the store and the output; where processes, signals or exit codes are what a test checks, run_cli."""
+    env = {"MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}", **extra_env}
+    saved = {key: os.environ.get(key) for key in env}
+    sigint = signal.getsignal(signal.SIGINT)  # the command line may install its own handler
+    os.environ.update(env)
+    try:
+        code, out, err = _in_process(module, args, store, logging.INFO, "%(asctime)s %(name)s: %(message)s")
+    finally:
+        signal.signal(signal.SIGINT, sigint)
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+    return subprocess.CompletedProcess([module, *args], code, out, err)
+
+
+def _in_process(module: str, argv: list[str], cwd: Path, log_level: int | None, log_format: str
+                ) -> tuple[int, str, str]:
     if module == "experiments":
         from experiments.cli import main
     else:
         from reports.__main__ import main
-    err, root = io.StringIO(), logging.getLogger()
+    out, err, root = io.StringIO(), io.StringIO(), logging.getLogger()
     handler, level = logging.StreamHandler(err), root.level
+    handler.setFormatter(logging.Formatter(log_format))
     if log_level is not None:
         root.addHandler(handler)
         root.setLevel(log_level)
     old = os.getcwd()
     os.chdir(cwd)
     try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
             try:
                 code = main(argv)
             except SystemExit as exc:  # argparse usage errors
@@ -63,7 +92,7 @@ def run_in_process(module: str, argv: list[str], cwd: Path, log_level: int | Non
         os.chdir(old)
         root.removeHandler(handler)
         root.setLevel(level)
-    return code, err.getvalue()
+    return code, out.getvalue(), err.getvalue()
 
 
 def render_results(store: Path, out: Path, template: str) -> int:

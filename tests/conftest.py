@@ -14,6 +14,9 @@
   on a file lock), for the tests that read a real study's store.
 - `results_store`: a smoke ablation (2 rollouts) and a 2-trial smoke sweep in one store, built once per
   test run likewise, for the RESULTS.md and study export tests (read only).
+- The C++ step kernel (stm.cpp_ext) is built once per test run, into the session's folder that the xdist workers
+  share (TORCH_EXTENSIONS_DIR; torch's file lock makes the others wait for the first build): in each worker's
+  throwaway home it was built once per worker (~100 CPU-s each). A TORCH_EXTENSIONS_DIR set by the caller is kept.
 - One intra-op thread per test process and per subprocess (OMP_NUM_THREADS=1), as the CLI gives each
   worker: pytest-xdist runs a process per core, and two threads each on busy cores spin at barriers
   (a smoke cell measured 68 s with 2 threads on a loaded 2-core machine, 24 s with 1).
@@ -69,6 +72,7 @@ def pytest_configure(config: pytest.Config) -> None:
                        "XDG_CONFIG_HOME": str(home / ".config"), "MPLCONFIGDIR": str(home / ".config" / "matplotlib"),
                        "ACRMDN_CACHE": str(pool), "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg",
                        "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "ACRMDN_WORKERS": "1"})  # see `isolated`
+    os.environ.setdefault("TORCH_EXTENSIONS_DIR", str(root / "torch-extensions"))
     if "torch" in sys.modules:  # imported before this hook (by a plugin): the variable came too late
         sys.modules["torch"].set_num_threads(1)
 
@@ -199,8 +203,9 @@ def smoke_store() -> SmokeStore:
 
 @pytest.fixture(scope="session")
 def results_store() -> Path:
-    """A folder whose mlflow.db holds a smoke ablation and a smoke sweep of reacher (built through the CLI,
-    once per test run); read only."""
+    """A folder whose mlflow.db holds a smoke ablation and a smoke sweep of reacher (built through the CLI, once per
+    test run; in a process of its own: a sweep run in the test's process leaves state behind that changes the
+    figures the report tests compare with a report rendered in another process); read only."""
 
     def build(store: Path) -> str:
         return _cli_output(store, "ablation", "--profile", "smoke", "--workers", "1", "--set", "eval.rollouts=2") + \

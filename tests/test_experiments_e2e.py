@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import cli_env, kill_at_checkpoints, run_cli
+from cli_helpers import cli_env, kill_at_checkpoints, run_cli_in_process
 from mlflow.tracking import MlflowClient
 from oracles import drawn_colours, wilson
 
@@ -90,7 +90,7 @@ def test_rerun_skips_every_finished_cell(smoke_store):
     client = MlflowClient(smoke_store.uri)
     exp_id = client.get_experiment_by_name("ablation").experiment_id
     before = {r.info.run_id: r.info.end_time for r in client.search_runs([exp_id])}
-    proc = run_cli(["ablation", "--profile", "smoke", "--workers", "2"], smoke_store.path)
+    proc = run_cli_in_process(["ablation", "--profile", "smoke", "--workers", "2"], smoke_store.path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "0 cell(s) run, 2 skipped" in proc.stdout
     after = {r.info.run_id: r.info.end_time for r in client.search_runs([exp_id]) if r.data.tags["role"] == "cell"}
@@ -110,7 +110,7 @@ def test_cell_killed_at_its_checkpoint_resumes_from_it(tmp_path):
     assert killed.data.tags["checkpoint_iteration"] == "50"
     assert [m.step for m in client.get_metric_history(run_id, "train/loss")] == list(range(5, 51, 5))
 
-    done = run_cli(args, tmp_path)
+    done = run_cli_in_process(args, tmp_path)  # the resume needs no process of its own
     assert done.returncode == 0, done.stderr[-3000:]
     run = client.get_run(run_id)
     assert run.info.status == "FINISHED"
@@ -144,7 +144,7 @@ def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
 
     # validation every 2 iterations: 5 intermediate values per trial for the median pruner
     args = ["sweep", "--profile", "smoke", "--workers", "1", "--set", "train.val_every=2", "--study-name", "s4"]
-    proc = run_cli([*args, "--trials", "4"], tmp_path)
+    proc = run_cli_in_process([*args, "--trials", "4"], tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     journal = tmp_path / "optuna.journal"
     assert journal.exists()
@@ -170,7 +170,7 @@ def test_sweep_with_pruning_continues_to_n_trials(tmp_path):
     figures = {f.path for f in client.list_artifacts(parent.info.run_id, "figures")}
     assert "figures/optimization_history.png" in figures
 
-    again = run_cli([*args, "--trials", "5"], tmp_path)
+    again = run_cli_in_process([*args, "--trials", "5"], tmp_path)
     assert again.returncode == 0, again.stderr[-3000:]
     study = optuna.load_study(study_name="s4", storage=storage)
     assert len(study.trials) == 5
@@ -182,7 +182,7 @@ def test_sweep_failure_rate_objective_is_one_minus_the_physics_success(tmp_path)
 
     args = ["sweep", "--profile", "smoke", "--workers", "1", "--trials", "1", "--study-name", "fr",
             "--set", "sweep.objective=failure_rate", "--set", "sweep.eval_rollouts=3"]
-    proc = run_cli(args, tmp_path)
+    proc = run_cli_in_process(args, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     backend = optuna.storages.journal.JournalFileBackend(str(tmp_path / "optuna.journal"))
     trial = optuna.load_study(study_name="fr", storage=optuna.storages.JournalStorage(backend)).trials[0]
@@ -211,9 +211,11 @@ def test_ui_serves_the_store_and_stops_cleanly(smoke_store):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    # one server worker (MLflow's --workers, 4 by default): each imports all of MLflow, and serving one test's
+    # requests needs none of them; the server still runs in a process group of its own that `ui` stops
     proc = subprocess.Popen([sys.executable, "-m", "experiments", "ui", "--port", str(port)], cwd=smoke_store.path,
-                            env=cli_env(smoke_store.path), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            text=True, start_new_session=True)
+                            env=cli_env(smoke_store.path, MLFLOW_WORKERS="1"), stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True, start_new_session=True)
     try:
         lines = _lines(proc.stdout)
         first = [lines.get(timeout=120) for _ in range(2)]

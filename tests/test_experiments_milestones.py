@@ -8,7 +8,7 @@ import re
 
 import numpy as np
 import pytest
-from cli_helpers import run_cli
+from cli_helpers import run_cli, run_cli_in_process
 from mlflow.tracking import MlflowClient
 from PIL import Image
 
@@ -19,8 +19,8 @@ SMALL = ["--set", "eval.rollouts=3", "--set", "eval.figures=0"]
 def kept_store(tmp_path_factory):
     """A smoke study (10 iterations, 2 seeds of lstm) that kept its checkpoints at 5 and 10 iterations."""
     store = tmp_path_factory.mktemp("kept")
-    proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
-                    "--set", "keep_checkpoints=5", "--study-name", "kept", *SMALL], store)
+    proc = run_cli_in_process(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
+                               "--set", "keep_checkpoints=5", "--study-name", "kept", *SMALL], store)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return store
 
@@ -32,7 +32,7 @@ def _runs(client: MlflowClient, experiment: str) -> list:
 
 @pytest.mark.slow
 def test_milestones_evaluate_each_kept_checkpoint_once(kept_store):
-    proc = run_cli(["milestones", "--study", "kept"], kept_store)
+    proc = run_cli_in_process(["milestones", "--study", "kept"], kept_store)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "4 evaluated, 0 already done, 0 failed" in proc.stdout
     client = MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}")
@@ -58,7 +58,7 @@ def test_milestones_evaluate_each_kept_checkpoint_once(kept_store):
             assert run.data.metrics["reacher/final_distance_mean"] != \
                 source.data.metrics["reacher/final_distance_mean"]
 
-    again = run_cli(["milestones", "--study", "kept"], kept_store)
+    again = run_cli_in_process(["milestones", "--study", "kept"], kept_store)
     assert again.returncode == 0 and "0 evaluated, 4 already done" in again.stdout
     assert len(_runs(client, "milestones")) == 4
 
@@ -69,7 +69,7 @@ def test_success_vs_iterations_figure_draws_each_variant(kept_store, tmp_path):
     from reports.data.store import Store
 
     if not _runs(MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}"), "milestones"):
-        assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
+        assert run_cli_in_process(["milestones", "--study", "kept"], kept_store).returncode == 0
     study = Store(f"sqlite:///{kept_store / 'mlflow.db'}").studies("milestones", None)[0]
     agg = milestone_rows(study)
     assert sorted(set(agg["iteration"])) == [5, 10] and set(agg["seeds"]) == {2} and set(agg["n"]) == {6}
@@ -100,7 +100,8 @@ def test_bad_selection_is_one_line_and_exit_2(tmp_path, args, message, store):
 
 @pytest.mark.slow
 def test_iterations_select_the_kept_checkpoints(kept_store):
-    proc = run_cli(["milestones", "--study", "kept", "--iterations", "10", "--feedback", "component_mean"], kept_store)
+    proc = run_cli_in_process(["milestones", "--study", "kept", "--iterations", "10", "--feedback", "component_mean"],
+                              kept_store)
     assert proc.returncode == 0, proc.stderr[-3000:]  # a deterministic head: one output whatever the feedback
     assert "'kept-milestones-feedback-component_mean': 2 evaluated, 0 already done" in proc.stdout
     client = MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}")
@@ -118,7 +119,8 @@ def test_validation_split_evaluates_its_own_episodes_and_stays_out_of_headline_t
     """--split validation: the kept models (final ones too: their own evaluation was on the test episodes)
     evaluated on the validation episodes (eval seed + 10,000 + seed, 34 per seed and task) as their own study,
     each run tagged with its split; a headline table refuses that study, a comparison quotes it labelled."""
-    proc = run_cli(["milestones", "--study", "kept", "--split", "validation", "--iterations", "10"], kept_store)
+    proc = run_cli_in_process(["milestones", "--study", "kept", "--split", "validation", "--iterations", "10"],
+                              kept_store)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "'kept-milestones-validation': 2 evaluated, 0 already done, 0 failed" in proc.stdout
     client = MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}")
@@ -158,7 +160,7 @@ def test_results_template_names_the_milestones_study(kept_store, tmp_path):
     from reports.results.writer import write_results
 
     if not _runs(MlflowClient(f"sqlite:///{kept_store / 'mlflow.db'}"), "milestones"):
-        assert run_cli(["milestones", "--study", "kept"], kept_store).returncode == 0
+        assert run_cli_in_process(["milestones", "--study", "kept"], kept_store).returncode == 0
     template = tmp_path / "t.md"
     template.write_text('{{ budget_table(study="kept") }}\n'
                         '{{ success_table(study="kept-milestones") }}\n'
@@ -176,15 +178,15 @@ def test_results_template_names_the_milestones_study(kept_store, tmp_path):
 def mdn_store(tmp_path_factory):
     """A smoke study of lstm-mdn (one seed, 10 iterations) that kept its final checkpoint."""
     store = tmp_path_factory.mktemp("kept-mdn")
-    proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm-mdn", "--workers", "1",
-                    "--set", "keep_checkpoints=10", "--study-name", "mdn", *SMALL], store)
+    proc = run_cli_in_process(["ablation", "--profile", "smoke", "--variants", "lstm-mdn", "--workers", "1",
+                               "--set", "keep_checkpoints=10", "--study-name", "mdn", *SMALL], store)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return store
 
 
 @pytest.mark.slow
 def test_feedback_evaluates_the_final_models_anew_as_their_own_study(mdn_store, tmp_path):
-    proc = run_cli(["milestones", "--study", "mdn", "--feedback", "sample"], mdn_store)
+    proc = run_cli_in_process(["milestones", "--study", "mdn", "--feedback", "sample"], mdn_store)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "'mdn-milestones-feedback-sample': 1 evaluated, 0 already done, 0 failed" in proc.stdout
     client = MlflowClient(f"sqlite:///{mdn_store / 'mlflow.db'}")
@@ -212,9 +214,10 @@ def stack_store(tmp_path_factory):
     """A smoke pick-place study (lstm, one seed, 4 demonstrations, 10 iterations) that kept its final checkpoint;
     its model is also evaluated on stacking, under the default protocol between the blocks (place_pose)."""
     store = tmp_path_factory.mktemp("kept-stack")
-    proc = run_cli(["ablation", "--profile", "smoke", "--tasks", "pick-place", "--variants", "lstm", "--workers", "1",
-                    "--set", "keep_checkpoints=10", "--set", "per_task.pick-place.data.n_demos=4",
-                    "--set", "train.step_kernel=python", "--study-name", "stk", *SMALL], store, timeout=900)
+    proc = run_cli_in_process(["ablation", "--profile", "smoke", "--tasks", "pick-place", "--variants", "lstm",
+                               "--workers", "1", "--set", "keep_checkpoints=10", "--set",
+                               "per_task.pick-place.data.n_demos=4", "--set", "train.step_kernel=python",
+                               "--study-name", "stk", *SMALL], store)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return store
 
@@ -232,7 +235,7 @@ def test_stack_restart_names_its_study_after_the_other_choices():
 def test_stack_restart_evaluates_stacking_alone_under_its_protocol(stack_store, tmp_path):
     """--stack-restart start: the final model evaluated anew (not copied) on stacking alone, with the scripted move
     to a drawn start configuration between the blocks, whose per-episode check the cell's own evaluation lacks."""
-    proc = run_cli(["milestones", "--study", "stk", "--stack-restart", "start"], stack_store)
+    proc = run_cli_in_process(["milestones", "--study", "stk", "--stack-restart", "start"], stack_store)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "'stk-milestones-stack-start': 1 evaluated, 0 already done, 0 failed" in proc.stdout
     client = MlflowClient(f"sqlite:///{stack_store / 'mlflow.db'}")

@@ -10,7 +10,7 @@ import signal
 
 import numpy as np
 import pytest
-from cli_helpers import kill_at_checkpoints, run_cli
+from cli_helpers import kill_at_checkpoints, run_cli_in_process
 from mlflow.tracking import MlflowClient
 
 SMALL = ["--set", "eval.rollouts=2", "--set", "eval.figures=1"]
@@ -36,8 +36,8 @@ def test_packed_study_logs_the_same_runs_as_an_unpacked_one(tmp_path):
         store = tmp_path / f"pack{pack}"
         store.mkdir()
         keep = ["--set", "keep_checkpoints=5"] if pack == "2" else []  # not hashed: the same cells either way
-        proc = run_cli(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--workers", "1",
-                     "--pack", pack, *SMALL, *keep], store)
+        proc = run_cli_in_process(["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2",
+                                   "--workers", "1", "--pack", pack, *SMALL, *keep], store)
         assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
         assert ("in 1 job(s)" if pack == "2" else "in 2 job(s)") in proc.stderr
         stores[pack] = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
@@ -78,7 +78,7 @@ def test_killed_packed_job_resumes_every_seed_from_its_checkpoint(tmp_path):
         assert r.info.status == "RUNNING" and r.data.tags["checkpoint_iteration"] == "50"
         assert [m.step for m in client.get_metric_history(r.info.run_id, "train/loss")] == list(range(5, 51, 5))
 
-    done = run_cli(args, tmp_path)
+    done = run_cli_in_process(args, tmp_path)  # the resume needs no process of its own
     assert done.returncode == 0, done.stderr[-3000:]
     for r in killed.values():
         run = client.get_run(r.info.run_id)
@@ -122,7 +122,7 @@ def test_a_queue_worker_trains_a_cell_groups_seeds_as_one_entry(tmp_path):
 
     args = ["ablation", "--profile", "smoke", "--variants", "lstm", "--seeds", "2", "--worker", "--workers", "1",
             "--study-name", "q", "--set", "eval.rollouts=2", "--set", "eval.figures=0"]
-    proc = run_cli(args, tmp_path)
+    proc = run_cli_in_process(args, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     assert "2 cell(s) run, 0 skipped" in proc.stdout
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
@@ -132,7 +132,7 @@ def test_a_queue_worker_trains_a_cell_groups_seeds_as_one_entry(tmp_path):
     assert [t.state for t in entries] == [TrialState.COMPLETE]  # one entry: the pack
     assert sorted(entries[0].user_attrs["config_hashes"]) == sorted(r.data.tags["config_hash"] for r in runs.values())
     assert sorted(entries[0].user_attrs["mlflow_run_ids"]) == sorted(r.info.run_id for r in runs.values())
-    again = run_cli(args, tmp_path)
+    again = run_cli_in_process(args, tmp_path)
     assert again.returncode == 0 and "0 cell(s) run, 2 skipped" in again.stdout
 
 

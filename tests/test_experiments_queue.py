@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from cli_helpers import cli_env, held_env, wait_for_signals
+from cli_helpers import cli_env, held_env, run_cli_in_process, wait_for_signals
 from mlflow.tracking import MlflowClient
 
 pytestmark = pytest.mark.slow
@@ -73,6 +73,6 @@ def test_worker_killed_mid_cell_is_retried_by_the_other(tmp_path):
     assert len(retry) == 1 and retry[0].state == TrialState.COMPLETE
     assert not [t for t in entries if t.state in (TrialState.RUNNING, TrialState.WAITING)]
 
-    again = _start(args, tmp_path, tmp_path / "again.log", cli_env(tmp_path))
-    assert again.wait(timeout=120) == 0
-    assert "0 cell(s) run, 2 skipped" in (tmp_path / "again.log").read_text()
+    again = run_cli_in_process(args, tmp_path)  # nothing left to run: no process of its own needed
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "0 cell(s) run, 2 skipped" in again.stdout

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import optuna
 import pytest
-from cli_helpers import run_cli
+from cli_helpers import run_cli_in_process
 from mlflow.tracking import MlflowClient
 from optuna.storages import JournalStorage
 from optuna.storages.journal import JournalFileBackend
@@ -45,8 +45,8 @@ def _main(argv: list[str], cwd: Path) -> tuple[int, str]:
 
 @pytest.mark.slow
 def test_a_grid_sweep_with_two_seeds_per_trial_and_its_importances(tmp_path):
-    proc = run_cli(["sweep", "--profile", "smoke", "--workers", "1", *GRID, "--set", "sweep.seeds=2",
-                    "--study-name", "g"], tmp_path)
+    proc = run_cli_in_process(["sweep", "--profile", "smoke", "--workers", "1", *GRID, "--set", "sweep.seeds=2",
+                               "--study-name", "g"], tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     trials = _study(tmp_path, "g").trials
     # the grid: m x the (u, v) pairs, each point once (u and v vary together, never crossed)
@@ -86,9 +86,9 @@ def test_a_grid_sweep_with_two_seeds_per_trial_and_its_importances(tmp_path):
     assert sweep_importance(study, tmp_path / "fig").paths
 
     # seed 0 of the pack is what seed 0 trained alone gets (train_packed = train)
-    alone = run_cli(["sweep", "--profile", "smoke", "--workers", "1", "--sampler", "grid", "--space", "m,u,v",
-                     "--set", "sweep.grid_m=[2]", "--set", "sweep.grid_uv=[[2,2]]", "--set", "sweep.pruner=none",
-                     "--study-name", "alone"], tmp_path)
+    alone = run_cli_in_process(["sweep", "--profile", "smoke", "--workers", "1", "--sampler", "grid", "--space",
+                                "m,u,v", "--set", "sweep.grid_m=[2]", "--set", "sweep.grid_uv=[[2,2]]", "--set",
+                                "sweep.pruner=none", "--study-name", "alone"], tmp_path)
     assert alone.returncode == 0, alone.stdout + alone.stderr[-3000:]
     (single,) = _study(tmp_path, "alone").trials
     packed = next(t for t in trials if (t.params["m"], t.params["uv"]) == (2, "2/2"))

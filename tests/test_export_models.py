@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from cli_helpers import run_cli
+from cli_helpers import run_cli_in_process
 from mlflow import MlflowClient
 
 from reports.__main__ import main
@@ -44,7 +44,7 @@ def _export(store, out, *more: str) -> int:
 def trained(tmp_path_factory):
     """The original store and the study's export with its models (final at 10, kept at 5)."""
     here = tmp_path_factory.mktemp("here")
-    proc = run_cli(ARGS, here)
+    proc = run_cli_in_process(ARGS, here)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = tmp_path_factory.mktemp("exports")
     assert _export(here, out, "--with-models", "--models-at", "5") == 0

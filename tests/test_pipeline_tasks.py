@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from cli_helpers import run_cli
+from cli_helpers import run_cli_in_process
 from mlflow.tracking import MlflowClient
 from oracles import drawn_colours, wilson
 
@@ -33,14 +33,14 @@ class TasksStore:
 @pytest.fixture(scope="module")
 def tasks_store(tmp_path_factory) -> TasksStore:
     store = tmp_path_factory.mktemp("tasks-store")
-    abl = run_cli(["ablation", "--profile", "smoke", "--tasks", "circle", "pick-place", "--variants", "ac-lstm-mdn",
-                   "--workers", "1", "--study-name", "tasks", "--set", "per_task.pick-place.data.n_demos=4",
-                   "--set", f"eval.rollouts={ROLLOUTS}"], store, timeout=900)
+    abl = run_cli_in_process(["ablation", "--profile", "smoke", "--tasks", "circle", "pick-place", "--variants",
+                              "ac-lstm-mdn", "--workers", "1", "--study-name", "tasks", "--set",
+                              "per_task.pick-place.data.n_demos=4", "--set", f"eval.rollouts={ROLLOUTS}"], store)
     assert abl.returncode == 0, abl.stdout + abl.stderr[-3000:]
-    sweep = run_cli(["sweep", "--profile", "smoke", "--task", "circle", "--trials", "1", "--workers", "1",
-                     "--study-name", "circle-sweep"], store)
+    sweep = run_cli_in_process(["sweep", "--profile", "smoke", "--task", "circle", "--trials", "1", "--workers", "1",
+                                "--study-name", "circle-sweep"], store)
     assert sweep.returncode == 0, sweep.stdout + sweep.stderr[-3000:]
-    rep = run_cli(["--out", str(store / "out"), "--study", "tasks"], store, module="reports")
+    rep = run_cli_in_process(["--out", str(store / "out"), "--study", "tasks"], store, module="reports")
     assert rep.returncode == 0, rep.stdout + rep.stderr[-3000:]
     assert "ablation study 'tasks'" in rep.stdout and "sweep study" not in rep.stdout  # --study selects one
     client = MlflowClient(f"sqlite:///{store / 'mlflow.db'}")
@@ -132,8 +132,8 @@ def test_report_tables_are_the_stores_numbers_and_its_figures_are_drawn(tasks_st
 
 def test_report_experiment_flag_builds_only_that_kind(tasks_store, tmp_path):
     out = tmp_path / "out"
-    proc = run_cli(["--out", str(out), "--experiment", "sweep", "--no-log-artifacts"], tasks_store.path,
-                   module="reports")
+    proc = run_cli_in_process(["--out", str(out), "--experiment", "sweep", "--no-log-artifacts"], tasks_store.path,
+                              module="reports")
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     assert "sweep study 'circle-sweep'" in proc.stdout and "ablation study" not in proc.stdout
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["circle-sweep"]

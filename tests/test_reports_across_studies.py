@@ -9,7 +9,7 @@ import re
 from pathlib import Path
 
 import pytest
-from cli_helpers import render_results, run_cli
+from cli_helpers import render_results, run_cli_in_process
 from mlflow import MlflowClient
 
 from experiments.stats import pct
@@ -22,9 +22,9 @@ def store(tmp_path_factory) -> Path:
     store = tmp_path_factory.mktemp("scaling")
     for name, n, variant, switches in (("demos6", 6, "lstm", []), ("demos6-ac", 6, "ac-lstm", []),
                                        ("demos4", 4, "lstm", ["--set", "per_task.reacher.data.goal_switches=0.5"])):
-        proc = run_cli(["ablation", "--profile", "smoke", "--variants", variant, "--workers", "1", "--study-name",
-                        name, "--set", f"per_task.reacher.data.n_demos={n}", "--set", "eval.rollouts=2",
-                        "--set", "eval.figures=0", *switches], store)
+        proc = run_cli_in_process(["ablation", "--profile", "smoke", "--variants", variant, "--workers", "1",
+                                   "--study-name", name, "--set", f"per_task.reacher.data.n_demos={n}", "--set",
+                                   "eval.rollouts=2", "--set", "eval.figures=0", *switches], store)
         assert proc.returncode == 0, proc.stderr[-3000:]
     return store
 

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from cli_helpers import run_cli
+from cli_helpers import run_cli_in_process
 from oracles import drawn_colours, is_pdf, wilson
 
 from reports.analyses.multimodal import (
@@ -33,7 +33,7 @@ def study(tmp_path_factory):
             "--study-name", "mm-tiny", "--set", f"eval.rollouts={ROLLOUTS}", "--set", "eval.figures=0",
             "--set", "train.val_every=0"]
     args += [a for t in TASKS for a in ("--set", f"per_task.{t}.data.n_demos=6")]
-    done = run_cli(args, store, timeout=900)
+    done = run_cli_in_process(args, store)
     assert done.returncode == 0, done.stderr[-3000:]
     (found,) = Store(f"sqlite:///{store / 'mlflow.db'}").studies(study="mm-tiny")
     return found

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import cli_env as _env
+from cli_helpers import run_cli_in_process
 from mlflow import MlflowClient
 from PIL import Image
 
@@ -55,12 +56,16 @@ def store(results_store):
     return results_store  # conftest: a smoke ablation and a smoke sweep, shared with tests/test_reports_export.py
 
 
-def _results(store: Path, out: Path, *args: str, template: str = TEMPLATE) -> subprocess.CompletedProcess:
+def _results(store: Path, out: Path, *args: str, template: str = TEMPLATE,
+             here: bool = False) -> subprocess.CompletedProcess:
+    """`python -m reports --results` in the store's folder (its default store); `here`: in this process."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "template.md").write_text(template)
-    return subprocess.run([sys.executable, "-m", "reports", "--results", "--template", str(out / "template.md"),
-                           "--results-out", str(out / "docs" / "RESULTS.md"), "--figures-dir",
-                           str(out / "docs" / "figures"), *args], cwd=store, env=_env(store),
+    argv = ["--results", "--template", str(out / "template.md"), "--results-out", str(out / "docs" / "RESULTS.md"),
+            "--figures-dir", str(out / "docs" / "figures"), *args]
+    if here:
+        return run_cli_in_process(argv, store, module="reports")
+    return subprocess.run([sys.executable, "-m", "reports", *argv], cwd=store, env=_env(store),
                           capture_output=True, text=True, timeout=300)
 
 
@@ -244,7 +249,7 @@ def test_comparisons_render_from_the_store(store, tmp_path):
     template = (f'{{{{ compare("reacher", "{name}/lstm", "{name}/ac-lstm-mdn") }}}}\n\n'
                 f'In a sentence: {{{{ difference("reacher", "{name}/lstm", "{name}/ac-lstm-mdn") }}}}.\n\n'
                 f'{{{{ comparisons("reacher", "{name}") }}}}\n')
-    proc = _results(store, tmp_path, template=template)
+    proc = _results(store, tmp_path, template=template, here=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     text = (tmp_path / "docs" / "RESULTS.md").read_text()
     # one seed per variant: no interval, and two models as groups of one
@@ -277,7 +282,7 @@ def test_table_one_claims_and_a_notebook_page_render_from_the_store(store, tmp_p
         '# A topic\n\n{{ success_table }}\n\n{{ figure("success_bars") }}\n')
     template = (f'# R\n\n{{{{ table_one("reacher={name}") }}}}\n\n{{{{ claims }}}}\n\n{{{{ headline_train_time }}}}\n\n'
                 'See {{ notebook("a-topic") }}.\n\n{{ provenance }}\n')
-    proc = _results(store, tmp_path, template=template)
+    proc = _results(store, tmp_path, template=template, here=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     text = (tmp_path / "docs" / "RESULTS.md").read_text()
     row = next(line for line in text.splitlines() if re.match(r"\| reacher +\| a\.c\. LSTM-MDN +\|", line))

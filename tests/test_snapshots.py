@@ -9,7 +9,7 @@ import signal
 
 import pytest
 import torch
-from cli_helpers import kill_at_checkpoints, run_cli
+from cli_helpers import kill_at_checkpoints, run_cli, run_cli_in_process
 from mlflow.tracking import MlflowClient
 
 pytestmark = pytest.mark.slow
@@ -43,8 +43,8 @@ def test_a_snapshot_imported_elsewhere_resumes_to_the_uninterrupted_models(tmp_p
     marks, code = kill_at_checkpoints(ARGS, here, 2, tmp_path / "killed.log")
     assert sorted(it for _, it in marks) == [50, 50] and code == -signal.SIGKILL
 
-    snap = run_cli(["export", "--study", "moved", "--with-checkpoints", "--out", str(tmp_path / "snap")], here,
-                   module="reports")
+    snap = run_cli_in_process(["export", "--study", "moved", "--with-checkpoints", "--out", str(tmp_path / "snap")],
+                              here, module="reports")
     assert snap.returncode == 0, snap.stderr[-3000:]
     files = {p.relative_to(tmp_path / "snap" / "moved").as_posix().split("/", 2)[-1]
              for p in (tmp_path / "snap" / "moved").rglob("*.pt")}
@@ -54,10 +54,10 @@ def test_a_snapshot_imported_elsewhere_resumes_to_the_uninterrupted_models(tmp_p
                       module="reports")
     assert refused.returncode == 2 and "stays out of reports/studies" in refused.stderr
 
-    imported = run_cli(["import", str(tmp_path / "snap" / "moved")], there, module="reports")
+    imported = run_cli_in_process(["import", str(tmp_path / "snap" / "moved")], there, module="reports")
     assert imported.returncode == 0, imported.stderr[-3000:]
-    for store in (there, straight):
-        done = run_cli(ARGS, store)
+    for store in (there, straight):  # in this process, both: the resume and the reference need no process of their own
+        done = run_cli_in_process(ARGS, store)
         assert done.returncode == 0, done.stderr[-3000:]
 
     moved, uninterrupted = _cells(_client(there)), _cells(_client(straight))
@@ -74,8 +74,8 @@ def test_a_snapshot_imported_elsewhere_resumes_to_the_uninterrupted_models(tmp_p
         assert all(torch.equal(mine[k], theirs[k]) for k in mine)  # bit for bit: same code, same machine
         assert run.data.metrics["reacher/success_rate"] == ref.data.metrics["reacher/success_rate"]
 
-    again = run_cli(["export", "--study", "moved", "--with-checkpoints", "--out", str(tmp_path / "again")], there,
-                    module="reports")
+    again = run_cli_in_process(["export", "--study", "moved", "--with-checkpoints", "--out", str(tmp_path / "again")],
+                               there, module="reports")
     assert again.returncode == 0, again.stderr[-3000:]
     carried = {p.relative_to(tmp_path / "again" / "moved").as_posix().split("/", 2)[-1]
                for p in (tmp_path / "again" / "moved").rglob("*.pt")}

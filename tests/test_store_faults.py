@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
-from cli_helpers import cli_env, kill_at_checkpoints, run_cli
+from cli_helpers import cli_env, kill_at_checkpoints, run_cli, run_cli_in_process
 from mlflow.tracking import MlflowClient
 
 TESTS = Path(__file__).resolve().parent
@@ -124,7 +124,7 @@ def test_a_store_fault_mid_study_is_one_line_exit_3_and_a_rerun_resumes(tmp_path
     assert cell.info.status == parent.info.status == "RUNNING"  # nothing more was written: resumable as after a kill
     assert cell.data.tags["checkpoint_iteration"] == "5"
 
-    again = run_cli(STUDY, tmp_path)
+    again = run_cli_in_process(STUDY, tmp_path)  # the resume needs no process of its own
     assert again.returncode == 0, again.stderr[-3000:]
     (cell,) = _runs(tmp_path, "cell")
     assert cell.info.status == "FINISHED" and cell.data.tags["resumed_from_iteration"] == "5"
@@ -208,7 +208,7 @@ def _cell_runs_begun(folder: Path) -> bool:
 def test_a_checkpoint_of_another_config_fails_its_cell_with_the_command_that_discards_it(tmp_path):
     """A cell's checkpoint swapped for another cell's: the cell fails before training, its reason (on the run and the
     console) names the command that discards the run; once that command has run, the study trains the cell anew."""
-    donor = run_cli([*STUDY, "--study-name", "donor", "--set", "model.hidden_size=8"], tmp_path)  # a smaller model
+    donor = run_cli_in_process([*STUDY, "--study-name", "donor", "--set", "model.hidden_size=8"], tmp_path)  # smaller
     assert donor.returncode == 0, donor.stderr[-3000:]
     (donor_cell,) = [r for r in _runs(tmp_path, "cell") if r.data.tags["study_name"] == "donor"]
     kill_at_checkpoints(STUDY, tmp_path, 1, tmp_path / "killed.log")  # f's cell: RUNNING, its checkpoint at 5
@@ -230,7 +230,7 @@ def test_a_checkpoint_of_another_config_fails_its_cell_with_the_command_that_dis
     deleted = subprocess.run([sys.executable, "-m", "mlflow", "runs", "delete", "--run-id", cell.info.run_id],
                              cwd=tmp_path, env=cli_env(tmp_path), capture_output=True, text=True, timeout=120)
     assert deleted.returncode == 0, deleted.stderr[-2000:]
-    again = run_cli(STUDY, tmp_path)
+    again = run_cli_in_process(STUDY, tmp_path)
     assert again.returncode == 0, again.stderr[-3000:]
     (new,) = [r for r in _runs(tmp_path, "cell") if r.data.tags["study_name"] == "f"]
     assert new.info.run_id != cell.info.run_id and new.info.status == "FINISHED"

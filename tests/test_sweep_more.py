@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import optuna
 import pytest
-from cli_helpers import run_cli
+from cli_helpers import run_cli, run_cli_in_process
 from mlflow.tracking import MlflowClient
 from optuna.storages import JournalStorage
 from optuna.storages.journal import JournalFileBackend
@@ -26,8 +26,8 @@ def _trial_runs(client: MlflowClient) -> dict[int, object]:
 
 
 def test_grid_sampler_covers_its_grid_exactly_once(tmp_path):
-    proc = run_cli(["sweep", "--profile", "smoke", "--workers", "1", "--sampler", "grid", "--space", "feedback",
-                    "--trials", "3", "--study-name", "grid"], tmp_path)
+    proc = run_cli_in_process(["sweep", "--profile", "smoke", "--workers", "1", "--sampler", "grid", "--space",
+                               "feedback", "--trials", "3", "--study-name", "grid"], tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     trials = _study(tmp_path, "grid").trials
     assert sorted(t.params["feedback"] for t in trials) == ["component_mean", "mixture_mean", "sample"]
@@ -42,7 +42,7 @@ def test_journal_sweep_recovers_a_killed_sweeps_trial_and_runs_two_workers(tmp_p
     from experiments.sweeps.runner import MlflowTrialLink
 
     args = ["sweep", "--profile", "smoke", "--sampler", "random", "--study-name", "j"]
-    first = run_cli([*args, "--workers", "1", "--trials", "1"], tmp_path)
+    first = run_cli_in_process([*args, "--workers", "1", "--trials", "1"], tmp_path)
     assert first.returncode == 0, first.stdout + first.stderr[-3000:]
     # what a sweep killed mid-trial leaves on the journal: a RUNNING trial linked to a RUNNING run
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
