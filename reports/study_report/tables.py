@@ -12,6 +12,7 @@ from pathlib import Path
 import pandas as pd
 
 from experiments import stats as shared_stats
+from experiments.weights_resume import RESUMED_TAG
 from reports import paper
 from reports.data.seed_aggregates import aggregate_success, mean_over_seeds
 from reports.data.store import Study
@@ -312,7 +313,9 @@ def _reached(run: dict) -> str:
         return "0 (queued)"
     done = run.get("metrics.train/iterations")
     reached = done if run["status"] == "FINISHED" and not pd.isna(done) else run.get("tags.checkpoint_iteration")
-    return f"{0 if reached is None or pd.isna(reached) else int(float(reached)):,} ({run['status'].lower()})"
+    resumed = run.get(f"tags.{RESUMED_TAG}")  # "<N> (fresh optimiser ...)": experiments/weights_resume.py
+    note = "" if resumed is None or pd.isna(resumed) else f"; from weights at {int(str(resumed).split()[0]):,}"
+    return f"{0 if reached is None or pd.isna(reached) else int(float(reached)):,} ({run['status'].lower()}{note})"
 
 
 def budget_table(study: Study) -> Table:
@@ -331,6 +334,8 @@ def budget_table(study: Study) -> Table:
                          " / ".join(_reached(r) for r in group.to_dict("records"))])
     notes = ["reached: iterations trained per seed (seed 0 / 1 / ...) and the run's status (in an export: its status "
              "when exported); a running or killed run resumes from its last checkpoint when the study's command is "
-             "run again on the store that holds its checkpoints (an export holds none)."]
+             "run again on the store that holds its checkpoints (an export holds none); \"from weights at N\": the run "
+             "resumed from its model kept at N with a fresh optimiser (`ablation --resume-from-weights`), "
+             "its checkpoint lost with a machine."]
     return Table("budget_table", f"Training iterations per cell ({study.name})",
                  ["task", "variant", "planned", "reached per seed"], rows, notes)
