@@ -45,3 +45,4 @@ def test_budget_table_reports_each_seeds_iterations_and_status(smoke_store, tmp_
     lstm = rows["reacher", "LSTM"][3].split(" / ")
     # seeds 7, 8 and 9, after the finished ones in seed order
     assert lstm[-3:] == ["5 (running)", "8 (killed; from weights at 5)", "0 (queued)"]
+    assert any(note.startswith("from weights at N:") for note in table.notes)
