@@ -178,3 +178,20 @@ def test_importances_or_a_note_why_not():
             "complete trial(s) and 2 parameter(s)")
     imp, note = param_importances(study([(1, "1/9", 2.0), (5, "5/5", 2.0)]), 0)
     assert imp == {} and "same objective" in note
+
+
+def test_sweep_figures_leave_the_process_style_as_it_was(tmp_path):
+    """optuna's matplotlib plots set the ggplot style process-wide; a sweep's figures keep it to themselves, so that
+    a figure drawn later in the same process (a report, a notebook) keeps its colours."""
+    import matplotlib
+
+    from experiments.sweeps.figures import sweep_figures
+
+    s = optuna.create_study()
+    s.optimize(lambda t: (t.suggest_int("m", 1, 20, log=True) - 3) ** 2 + t.suggest_float("u", 0, 1), n_trials=3)
+    before = dict(matplotlib.rcParams)
+    paths = sweep_figures(s, tmp_path)
+    assert {p.stem for p in paths} >= {"optimization_history", "slice"}
+    after = dict(matplotlib.rcParams)
+    # the style's entries unchanged (sweep_figures chooses the Agg backend, which is not a style)
+    assert {k for k in before if before[k] != after[k] and not k.startswith("backend")} == set()

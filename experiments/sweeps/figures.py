@@ -71,13 +71,15 @@ def sweep_figures(study, out: Path, evaluator=None) -> list[Path]:
         plots["contour"] = ovm.plot_contour
     paths = []
     for name, fn in plots.items():
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                ax = fn(study)
-            fig = ax.flat[0].figure if hasattr(ax, "flat") else ax.figure
-            paths += [Path(p) for p in save_figure(fig, out / name, dpi=110, bbox_inches="tight")]
-        except Exception as exc:  # optuna raises for degenerate studies (e.g. zero-variance importances)
-            log.info("figure %s skipped: %s", name, exc)
-            plt.close("all")
+        # each of optuna's plots sets the ggplot style for the whole process: it stays inside this figure
+        with matplotlib.rc_context():
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    ax = fn(study)
+                fig = ax.flat[0].figure if hasattr(ax, "flat") else ax.figure
+                paths += [Path(p) for p in save_figure(fig, out / name, dpi=110, bbox_inches="tight")]
+            except Exception as exc:  # optuna raises for degenerate studies (e.g. zero-variance importances)
+                log.info("figure %s skipped: %s", name, exc)
+                plt.close("all")
     return paths
