@@ -19,6 +19,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 REPO = Path(__file__).resolve().parents[1]
 SIGNAL_FILE_ENV = "ACRMDN_TEST_SIGNAL_FILE"
@@ -53,18 +54,12 @@ def run_cli_in_process(args: list[str], store: Path, module: str = "experiments"
     of imports and first-use set-ups that this process has made already. For commands whose outcome a test reads
     from the store and the output; where processes, signals or exit codes are what a test checks, run_cli."""
     env = {"MLFLOW_TRACKING_URI": f"sqlite:///{store / 'mlflow.db'}", **extra_env}
-    saved = {key: os.environ.get(key) for key in env}
     sigint = signal.getsignal(signal.SIGINT)  # the command line may install its own handler
-    os.environ.update(env)
     try:
-        code, out, err = _in_process(module, args, store, logging.INFO, "%(asctime)s %(name)s: %(message)s")
+        with mock.patch.dict(os.environ, env):
+            code, out, err = _in_process(module, args, store, logging.INFO, "%(asctime)s %(name)s: %(message)s")
     finally:
         signal.signal(signal.SIGINT, sigint)
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
     return subprocess.CompletedProcess([module, *args], code, out, err)
 
 

@@ -335,7 +335,7 @@ def budget_table(study: Study) -> Table:
     notes = ["reached: iterations trained per seed (seed 0 / 1 / ...) and the run's status (in an export: its status "
              "when exported); a running or killed run resumes from its last checkpoint when the study's command is "
              "run again on the store that holds its checkpoints (an export holds none)."]
-    if any("from weights at" in row[3] for row in rows):
+    if kids.get(f"tags.{RESUMED_TAG}", pd.Series(dtype=object)).notna().any():
         notes.append("from weights at N: the run went on from its model kept at N with a fresh optimiser and fresh "
                      "random streams (`ablation --resume-from-weights`), its checkpoint lost with a machine.")
     return Table("budget_table", f"Training iterations per cell ({study.name})",
