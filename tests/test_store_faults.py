@@ -184,9 +184,31 @@ def test_ctrl_c_before_any_cell_started_marks_the_parent_killed(tmp_path):
     assert proc.returncode == 130 and "Traceback" not in err, err[-3000:]
     (parent,) = _runs(tmp_path, "parent")
     cells = _runs(tmp_path, "cell")
-    assert parent.info.status == "KILLED"
+    assert parent.info.status == "KILLED", err[-3000:]
     assert 0 < len(cells) < 20000 and {c.info.status for c in cells} == {"KILLED"}
     assert not any(c.data.metrics for c in cells)  # none had started training
+
+
+def test_a_ctrl_c_inside_a_store_call_comes_once_the_call_is_whole(tmp_path):
+    """The Ctrl-C lands while the store writes: the write completes, then KeyboardInterrupt (a write cut short
+    inside SQLAlchemy could keep SQLite's lock, and the Ctrl-C's own writes, the runs marked KILLED, waited)."""
+    from experiments.runtime.tracking import Client
+
+    client = Client(_uri(tmp_path))
+    experiment_id = client.create_experiment("x")
+    real = client._client.create_run
+
+    def interrupted_create_run(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # handled by Python between two bytecodes: here, mid-call
+        return real(*args, **kwargs)
+
+    client._client.create_run = interrupted_create_run
+    with pytest.raises(KeyboardInterrupt):
+        client.create_run(experiment_id, tags={"role": "cell"})
+    (run,) = MlflowClient(_uri(tmp_path)).search_runs([experiment_id])
+    assert run.data.tags["role"] == "cell"  # the whole write is in the store
+    client.set_terminated(run.info.run_id, "KILLED")
+    assert client.get_run(run.info.run_id).info.status == "KILLED"
 
 
 def _cell_runs_begun(folder: Path) -> bool:

@@ -29,6 +29,7 @@ from mlflow.tracking import MlflowClient
 from experiments.runtime.backend_internals import is_param_conflict, is_transient_store_error
 from experiments.runtime.schema_template import create_from_template
 from experiments.runtime.store_faults import StoreFault, StoreWatch, is_lasting
+from stm.training.interrupts import whole_step
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +113,20 @@ class Client:
 
     def __getattr__(self, name: str) -> Any:
         attr = getattr(self._client, name)
-        return with_retries(attr) if callable(attr) else attr
+        return with_retries(_whole_call(attr)) if callable(attr) else attr
+
+
+def _whole_call(fn: Callable) -> Callable:
+    """A store call that a Ctrl-C does not cut short: the interrupt comes as the call returns. Cut inside
+    SQLAlchemy, a call could leave the process's connection holding SQLite's write lock, and the Ctrl-C's own
+    writes (the runs marked KILLED) then waited for it and gave up."""
+
+    @functools.wraps(fn)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        with whole_step():
+            return fn(*args, **kwargs)
+
+    return call
 
 
 def get_or_create_experiment(client: Client, name: str) -> str:

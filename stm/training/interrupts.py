@@ -1,7 +1,8 @@
 """Ctrl-C during training: held until the training step in progress is whole, so that an interrupted
 training checkpoints a consistent state where it stands (stm.training.loop) instead of
 losing the iterations since its last periodic checkpoint. A busy study worker is stopped the same
-way (experiments/runtime/processes.py interrupts its main thread as a SIGINT would)."""
+way (experiments/runtime/processes.py interrupts its main thread as a SIGINT would). A store call is held
+whole too (experiments/runtime/tracking.py)."""
 
 from __future__ import annotations
 
