@@ -26,60 +26,64 @@ void pass1_row(const T* __restrict__ s, const T* __restrict__ cr, T* __restrict_
   for (int64_t j = 0; j < H; ++j) cn[j] = s[H + j] * cr[j] + s[j] * (s[3 * H + j] * T(2) - T(1));
 }
 
-// h = o tanh(c') (also into h2 with COPY: a store in the loop is cheaper than a memcpy per row); gd = [g, c,
-// tanh(c'), 2 i] * s (1 - s) (the local derivatives of the pre-activations); o_dt = o (1 - tanh(c')^2).
+// h = o tanh(c') (also into h2 with COPY: a store in the loop is cheaper than a memcpy per row).
 template <typename T, bool COPY>
-void pass2_row(const T* __restrict__ s, const T* __restrict__ cr, const T* __restrict__ tr, T* __restrict__ hr,
-               T* __restrict__ h2, T* __restrict__ d, T* __restrict__ od, int64_t H) {
+void pass2_row(const T* __restrict__ s, const T* __restrict__ tr, T* __restrict__ hr, T* __restrict__ h2,
+               int64_t H) {
   for (int64_t j = 0; j < H; ++j) {
-    const T si = s[j], sf = s[H + j], so = s[2 * H + j], sg = s[3 * H + j];
-    const T hv = so * tr[j];
+    const T hv = s[2 * H + j] * tr[j];
     hr[j] = hv;
     if (COPY) h2[j] = hv;
-    od[j] = so + (-hv) * tr[j];
-    d[j] = (sg * T(2) - T(1)) * (si + (-si) * si);
-    d[H + j] = cr[j] * (sf + (-sf) * sf);
-    d[2 * H + j] = tr[j] * (so + (-so) * so);
-    d[3 * H + j] = (si * T(2)) * (sg + (-sg) * sg);
   }
 }
 
-// dh = dh_a (+ dh_b); dc = gc + o_dt dh (o_dt dh without gc); d gates = [dc, dc, dh, dc] * gd; the cell state's
-// gradient dc f. Templated on which inputs exist, so that the loop has no branch and stays vectorised.
+// dh = dh_a (+ dh_b); dc = gc + o_dt dh (o_dt dh without gc), o_dt = o (1 - tanh(c')^2); d gates = [dc, dc, dh,
+// dc] * [g, c, tanh(c'), 2 i] * s (1 - s) (the local derivatives of the pre-activations); the cell state's
+// gradient dc f. The derivatives recomputed from s, c and tanh(c') as the forward computed them before they were
+// dropped from its stores (the same operations in the same order: the same values). Templated on which inputs
+// exist, so that the loop has no branch and stays vectorised.
 template <typename T, bool HAS_GC, bool HAS_DH_B>
-void backward_row(const T* __restrict__ s, const T* __restrict__ d, const T* __restrict__ od,
+void backward_row(const T* __restrict__ s, const T* __restrict__ cr, const T* __restrict__ tr,
                   const T* __restrict__ dha, const T* __restrict__ dhb, const T* __restrict__ gcin,
                   T* __restrict__ dg, T* __restrict__ gcr, int64_t H) {
   for (int64_t j = 0; j < H; ++j) {
+    const T si = s[j], sf = s[H + j], so = s[2 * H + j], sg = s[3 * H + j], t = tr[j];
+    const T od = so + (-(so * t)) * t;
     const T dh = HAS_DH_B ? dha[j] + dhb[j] : dha[j];
-    const T dc = HAS_GC ? gcin[j] + od[j] * dh : od[j] * dh;
-    dg[j] = dc * d[j];
-    dg[H + j] = dc * d[H + j];
-    dg[2 * H + j] = dh * d[2 * H + j];
-    dg[3 * H + j] = dc * d[3 * H + j];
-    gcr[j] = dc * s[H + j];
+    const T dc = HAS_GC ? gcin[j] + od * dh : od * dh;
+    dg[j] = dc * ((sg * T(2) - T(1)) * (si + (-si) * si));
+    dg[H + j] = dc * (cr[j] * (sf + (-sf) * sf));
+    dg[2 * H + j] = dh * (t * (so + (-so) * so));
+    dg[3 * H + j] = dc * ((si * T(2)) * (sg + (-sg) * sg));
+    gcr[j] = dc * sf;
   }
 }
 
 template <typename T, bool HAS_GC, bool HAS_DH_B>
-void backward_rows(const Rows<T>& sig, const Rows<T>& gd, const Rows<T>& o_dt, const Rows<T>& dha,
+void backward_rows(const Rows<T>& sig, const Rows<T>& c, const Rows<T>& tc, const Rows<T>& dha,
                    const Rows<T>& dhb, const Rows<T>& gc, const Rows<T>& dg, const Rows<T>& gcr, int64_t K,
                    int64_t B, int64_t H) {
   for (int64_t k = 0; k < K; ++k) {
     for (int64_t b = 0; b < B; ++b) {
-      backward_row<T, HAS_GC, HAS_DH_B>(sig.at(k, b), gd.at(k, b), o_dt.at(k, b), dha.at(k, b),
+      backward_row<T, HAS_GC, HAS_DH_B>(sig.at(k, b), c.at(k, b), tc.at(k, b), dha.at(k, b),
                                         HAS_DH_B ? dhb.at(k, b) : nullptr, HAS_GC ? gc.at(k, b) : nullptr,
                                         dg.at(k, b), gcr.at(k, b), H);
     }
   }
 }
 
-// A layer's buffers of n steps, one step block per index of the first dimension: (n, K, B, X).
-Tensor step_buffer(int64_t n, const Tensor& like, int64_t K, int64_t B, int64_t X) {
-  return at::empty({n, K, B, X}, like.options());
-}
-
 }  // namespace
+
+Cells run_cells(const Tensor& c0, int64_t n) {
+  Cells cells;
+  cells.c0 = rows_ready(c0);
+  const int64_t K = c0.size(0), B = c0.size(1), H = c0.size(2);
+  cells.cs = at::empty({std::max<int64_t>(n - 1, 1), K, B, H}, c0.options());
+  cells.tcs = at::empty({n, K, B, H}, c0.options());
+  cells.last = at::empty({K, B, H}, c0.options());
+  cells.n = n;
+  return cells;
+}
 
 Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options) {
   return {at::empty(sizes, options), at::empty(sizes, options)};
@@ -126,46 +130,40 @@ void to_low(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X)
   }
 }
 
-void step_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
-                  const Block& o_dt, const Block& h, const Block& h2) {
-  const int64_t K = tc.size(0), B = tc.size(1), H = tc.size(2);
+void step_forward(const Block& sig, const Block& c, const Block& c_new, const Block& tc, const Block& h,
+                  const Block& h2, int64_t K, int64_t B, int64_t H) {
+  TORCH_CHECK((K == 1 || (c_new.sk == B * H && tc.sk == B * H)) && (B == 1 || (c_new.sb == H && tc.sb == H)),
+              "step_forward: c_new, tc contiguous");
   sigmoid_block(sig, K, B, 4 * H);
-  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "step_pass1", [&] {
+  AT_DISPATCH_FLOATING_TYPES(sig.dtype, "step_pass1", [&] {
     const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), cn = rows<scalar_t>(c_new);
     for (int64_t k = 0; k < K; ++k)
       for (int64_t b = 0; b < B; ++b) pass1_row<scalar_t>(s.at(k, b), cr.at(k, b), cn.at(k, b), H);
   });
-  TORCH_CHECK(c_new.is_contiguous() && tc.is_contiguous(), "step_forward: c_new, tc contiguous");
-  tanh_into(c_new.data_ptr(), tc.data_ptr(), c_new.numel(), c_new.scalar_type());
-  AT_DISPATCH_FLOATING_TYPES(tc.scalar_type(), "step_pass2", [&] {
-    const auto s = rows<scalar_t>(sig), cr = rows<scalar_t>(c), tr = rows<scalar_t>(tc), hr = rows<scalar_t>(h),
-               h2r = rows<scalar_t>(h2), d = rows<scalar_t>(gd), od = rows<scalar_t>(o_dt);
+  tanh_into(c_new.data, tc.data, K * B * H, c_new.dtype);
+  AT_DISPATCH_FLOATING_TYPES(sig.dtype, "step_pass2", [&] {
+    const auto s = rows<scalar_t>(sig), tr = rows<scalar_t>(tc), hr = rows<scalar_t>(h), h2r = rows<scalar_t>(h2);
     for (int64_t k = 0; k < K; ++k) {
       for (int64_t b = 0; b < B; ++b) {
-        if (h2r.p != nullptr) {
-          pass2_row<scalar_t, true>(s.at(k, b), cr.at(k, b), tr.at(k, b), hr.at(k, b), h2r.at(k, b), d.at(k, b),
-                                    od.at(k, b), H);
-        } else {
-          pass2_row<scalar_t, false>(s.at(k, b), cr.at(k, b), tr.at(k, b), hr.at(k, b), nullptr, d.at(k, b),
-                                     od.at(k, b), H);
-        }
+        if (h2r.p != nullptr) pass2_row<scalar_t, true>(s.at(k, b), tr.at(k, b), hr.at(k, b), h2r.at(k, b), H);
+        else pass2_row<scalar_t, false>(s.at(k, b), tr.at(k, b), hr.at(k, b), nullptr, H);
       }
     }
   });
 }
 
-void step_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
+void step_backward(const Block& sig, const Block& c, const Block& tc, const Block& dh_a, const Block& dh_b,
                    const Block& gc, const Block& dgates, const Tensor& grad_c) {
   const int64_t K = grad_c.size(0), B = grad_c.size(1), H = grad_c.size(2);
   const bool has_gc = gc.data != nullptr, has_dh_b = dh_b.data != nullptr;
   AT_DISPATCH_FLOATING_TYPES(grad_c.scalar_type(), "step_backward", [&] {
     using T = scalar_t;
-    const auto s = rows<T>(sig), d = rows<T>(gd), od = rows<T>(o_dt), a = rows<T>(dh_a), b = rows<T>(dh_b),
+    const auto s = rows<T>(sig), cr = rows<T>(c), tr = rows<T>(tc), a = rows<T>(dh_a), b = rows<T>(dh_b),
                g = rows<T>(gc), dg = rows<T>(dgates), gr = rows<T>(grad_c);
-    if (has_gc && has_dh_b) backward_rows<T, true, true>(s, d, od, a, b, g, dg, gr, K, B, H);
-    else if (has_gc) backward_rows<T, true, false>(s, d, od, a, b, g, dg, gr, K, B, H);
-    else if (has_dh_b) backward_rows<T, false, true>(s, d, od, a, b, g, dg, gr, K, B, H);
-    else backward_rows<T, false, false>(s, d, od, a, b, g, dg, gr, K, B, H);
+    if (has_gc && has_dh_b) backward_rows<T, true, true>(s, cr, tr, a, b, g, dg, gr, K, B, H);
+    else if (has_gc) backward_rows<T, true, false>(s, cr, tr, a, b, g, dg, gr, K, B, H);
+    else if (has_dh_b) backward_rows<T, false, true>(s, cr, tr, a, b, g, dg, gr, K, B, H);
+    else backward_rows<T, false, false>(s, cr, tr, a, b, g, dg, gr, K, B, H);
   });
 }
 
@@ -246,11 +244,7 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
     at::baddbmm_out(lay.sig, lay.sig, x, w.narrow(1, 0, I));
     lay.sig = lay.sig.view({K, B, n, 4 * H});
   }
-  lay.gd = step_buffer(n, x, K, B, 4 * H);
-  lay.o_dt = step_buffer(n, x, K, B, H);
-  const auto c_blocks = block_pair({K, B, H}, x.options());
-  const auto tc = at::empty({K, B, H}, x.options());
-  Tensor c = rows_ready(c0);
+  lay.cells = run_cells(c0, n);
   const Mat w_rec = w_low.defined() ? Mat(w_low).rows(I, H) : Mat(w_h);
   for (int64_t t = 0; t < n; ++t) {
     const Block sig = slice(lay.sig, 2, t);
@@ -262,10 +256,9 @@ Tensor sequence_layer(std::vector<SeqLayer>& layers, size_t k, const Tensor& c0,
     }
     const Block up = k + 1 < layers.size() ? slice(layers[k + 1].xh, 2, t) : slice(out, 2, t);
     const Block next = t + 1 < n ? slice(lay.xh, 2, t + 1, I) : Block(h_last);
-    step_forward(sig, c, c_blocks[t % 2], tc, slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), up, next);
-    c = c_blocks[t % 2];
+    step_forward(sig, lay.cells.before(t), lay.cells.after(t), lay.cells.tanh_after(t), up, next, K, B, H);
   }
-  return c;
+  return lay.cells.last;
 }
 
 }  // namespace
@@ -305,8 +298,8 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
   for (int64_t k = L - 1; k >= 0; --k) {
     const auto& lay = seq->layers[k];
     const int64_t K = lay.xh.size(0), B = lay.xh.size(1), n = lay.xh.size(2), I = lay.inputs;
-    const int64_t H = lay.o_dt.size(-1);
-    const auto opt = lay.o_dt.options();
+    const int64_t H = lay.cells.c0.size(-1);
+    const auto opt = lay.cells.c0.options();
     const Tensor w_low = seq->low.empty() ? Tensor() : seq->low[k];
     auto w_hT = w_low.defined()     ? w_low.narrow(1, I, H).transpose(1, 2)
                 : seq->w_hT.empty() ? seq->ws[k].narrow(1, I, H).transpose(1, 2).contiguous()
@@ -321,7 +314,7 @@ std::tuple<TensorList, TensorList, TensorList, TensorList> sequence_backward(
     const Mat w_recT(w_hT);
     for (int64_t t = n - 1; t >= 0; --t) {
       const Block dg_t = slice(dg, 2, t);
-      step_backward(slice(lay.sig, 2, t), slice(lay.gd, 0, t), slice(lay.o_dt, 0, t), dh_rec,
+      step_backward(slice(lay.sig, 2, t), lay.cells.before(t), lay.cells.tanh_after(t), dh_rec,
                     g_out.defined() ? slice(g_out, 2, t) : Block(), dc, dg_t, dcs[t % 2]);
       dc = dcs[t % 2];
       if (w_low.defined()) {

@@ -34,19 +34,37 @@ using Pair = std::array<Tensor, 2>;
 // Two contiguous blocks a run of steps alternates between (each step reads one and writes the other).
 Pair block_pair(at::IntArrayRef sizes, const at::TensorOptions& options);
 
+// A layer's cell states over a run of n steps, what its backward reads besides the gates' sigmoids: the local
+// derivatives of the pre-activations and o (1 - tanh(c')^2) are recomputed from them there (the same arithmetic,
+// so the same values) rather than stored per step: 2H values a row per step to write and read back, not 5H.
+struct Cells {
+  Tensor c0;    // before the first step (K, B, H), its rows contiguous
+  Tensor cs;    // after steps 0 .. n - 2, (max(n - 1, 1), K, B, H)
+  Tensor tcs;   // tanh of each step's new cell state, (n, K, B, H)
+  Tensor last;  // after the last step (K, B, H): handed on to the next run
+  int64_t n = 0;
+
+  Block before(int64_t j) const { return j == 0 ? Block(c0) : slice(cs, 0, j - 1); }
+  Block after(int64_t j) const { return j + 1 < n ? slice(cs, 0, j) : Block(last); }
+  Block tanh_after(int64_t j) const { return slice(tcs, 0, j); }
+};
+// The cells of a run of n steps from c0 (K, B, H).
+Cells run_cells(const Tensor& c0, int64_t n);
+
 // One LSTM step forward from the gates' pre-activations sig (K, B, 4H), replaced by their sigmoids in place (what
-// the backward reads): c_new, h (and a copy of h in h2 where given), the saved gd, o_dt; tc (K, B, H) is scratch
-// (tanh(c_new)); c_new and tc contiguous. All are step blocks, written in place.
-void step_forward(const Block& sig, const Block& c, const Tensor& c_new, const Tensor& tc, const Block& gd,
-                  const Block& o_dt, const Block& h, const Block& h2);
+// the backward reads): c_new, tc = tanh(c_new), h (and a copy of h in h2 where given). All are step blocks,
+// written in place; c_new and tc contiguous (K, B, H).
+void step_forward(const Block& sig, const Block& c, const Block& c_new, const Block& tc, const Block& h,
+                  const Block& h2, int64_t K, int64_t B, int64_t H);
 // One LSTM step backward: d gates and grad_c (K, B, H), the gradient of the previous cell state, from
-// dh = dh_a (+ dh_b where given) and gc (none: zero). Step blocks, the outputs written in place.
-void step_backward(const Block& sig, const Block& gd, const Block& o_dt, const Block& dh_a, const Block& dh_b,
+// dh = dh_a (+ dh_b where given) and gc (none: zero); c the cell state before the step, tc tanh of the one after.
+// Step blocks, the outputs written in place.
+void step_backward(const Block& sig, const Block& c, const Block& tc, const Block& dh_a, const Block& dh_b,
                    const Block& gc, const Block& dgates, const Tensor& grad_c);
 // t where its last dimension is contiguous, else a contiguous copy (gradients may come expanded).
 Tensor rows_ready(const Tensor& t);
-// A new contiguous (P, K, Q, X) tensor whose every row (p, k, q) is b[k] (b (K, 1, X)): the bias each product is
-// added to. Row by row: ATen's copy of the broadcast bias costs several times as much.
+// A new contiguous (P, K, Q, X) tensor whose every row (p, k, q) is b[k] (b (K, 1, X)): the bias each
+// product is added to. Row by row: ATen's copy of the broadcast bias costs several times as much.
 Tensor bias_rows(const Tensor& b, int64_t P, int64_t Q);
 
 // X float32 columns of a step block into a bfloat16 one, rounded to nearest even as ATen's cast: per step and layer
@@ -62,7 +80,7 @@ void to_low(const Block& src, const Block& dst, int64_t K, int64_t B, int64_t X)
 struct SeqLayer {
   Tensor xh, sig;     // (K, B, n, I + H), (K, B, n, 4H)
   Tensor xh_low;      // bf16 products: xh in bf16, the products' operand (undefined: float32 products)
-  Tensor gd, o_dt;    // per step: (n, K, B, 4H), (n, K, B, H)
+  Cells cells;
   int64_t inputs = 0;  // I
 };
 

@@ -13,9 +13,10 @@ namespace stm_cpp {
 namespace {
 
 // The layers' buffers for n steps; each layer's h before the segment into its [x, h] of the first step, its bias
-// into every step's sig (the steps add their products in place: one copy per layer, not one per step).
-std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs, const TensorList& h, int64_t n,
-                                     bool low) {
+// into every step's sig (the steps add their products in place: one copy per layer, not one per step), its c
+// before the segment the first of its cells.
+std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs, const TensorList& h,
+                                     const TensorList& c, int64_t n, bool low) {
   const int64_t K = h[0].size(0), B = h[0].size(1), H = h[0].size(2);
   const auto opt = h[0].options();
   std::vector<SegLayer> layers;
@@ -25,8 +26,7 @@ std::vector<SegLayer> segment_layers(const TensorList& ws, const TensorList& bs,
     lay.xh = at::empty({K, n, B, lay.inputs + H}, opt);
     if (low) lay.xh_low = at::empty({K, n, B, lay.inputs + H}, opt.dtype(at::kBFloat16));
     lay.sig = bias_rows(bs[k], n, B);
-    lay.gd = at::empty({n, K, B, 4 * H}, opt);
-    lay.o_dt = at::empty({n, K, B, H}, opt);
+    lay.cells = run_cells(c[k], n);
     copy_rows(rows_ready(h[k]), slice(lay.xh, 1, n - 1, lay.inputs), K, B, H);
     layers.push_back(std::move(lay));
   }
@@ -62,9 +62,8 @@ Block feedback_prediction(const Segment& seg, int64_t j, const Block& h_top) {
 
 // One step of the stack, bottom layer first (stm.lstm_step._stack_forward), on the segment's buffers: each layer's
 // h goes straight into the next layer's [x, h] of this step (the top's into the block) and into its own [x, h]
-// of the next step (after the last step: into h_last); c alternates between two blocks per layer (c_blocks[k]).
-void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<Pair>& c_blocks, const Tensor& tc,
-                const Tensor& block, const TensorList& h_last) {
+// of the next step (after the last step: into h_last); c into the layer's cells.
+void stack_step(const Segment& seg, int64_t j, const Tensor& block, const TensorList& h_last) {
   const int64_t L = static_cast<int64_t>(seg.layers.size()), n = seg.n, K = seg.K, B = seg.B, H = seg.H;
   for (int64_t k = 0; k < L; ++k) {
     const auto& lay = seg.layers[k];
@@ -79,9 +78,7 @@ void stack_step(const Segment& seg, int64_t j, TensorList& c, const std::vector<
     }
     const Block up = k + 1 < L ? slice(seg.layers[k + 1].xh, 1, seg.slot(j)) : slice(block, 2, j);
     const Block next = j + 1 < n ? slice(lay.xh, 1, seg.slot(j + 1), lay.inputs) : Block(h_last[k]);
-    const auto& c_new = c_blocks[k][j % 2];
-    step_forward(sig, c[k], c_new, tc, slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), up, next);
-    c[k] = c_new;
+    step_forward(sig, lay.cells.before(j), lay.cells.after(j), lay.cells.tanh_after(j), up, next, K, B, H);
   }
 }
 
@@ -111,21 +108,15 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
   seg->B = B;
   seg->H = H;
   const auto opt = h[0].options();
-  seg->layers = segment_layers(ws, bs, h, n, !low.empty());
+  seg->layers = segment_layers(ws, bs, h, c, n, !low.empty());
   seg->fb_out = bias_rows(b_fb, n, B);
   if (seg->mixtures > 0) {
     seg->preds = at::empty({n, K, B, seg->dims}, opt);
     seg->idx = at::empty({n, K, B, 1}, opt.dtype(at::kLong));
   }
   const auto block = at::empty({K, B, n, H}, opt);
-  const auto tc = at::empty({K, B, H}, opt);
-  std::vector<Pair> c_blocks(L);
   TensorList h_last(L);
-  for (int64_t k = 0; k < L; ++k) {
-    c_blocks[k] = block_pair({K, B, H}, opt);
-    h_last[k] = at::empty({K, B, H}, opt);
-    c[k] = rows_ready(c[k]);
-  }
+  for (int64_t k = 0; k < L; ++k) h_last[k] = at::empty({K, B, H}, opt);
   seg->qs = at::empty({n, K, B, JOINTS}, opt);
   seg->mask_q = at::empty({n, K, B, JOINTS}, opt.dtype(at::kBool));
   if (seg->gripper) seg->mask_g = at::empty({n, K, B, 1}, opt.dtype(at::kBool));
@@ -160,9 +151,10 @@ std::tuple<Tensor, TensorList, TensorList, std::shared_ptr<Segment>> segment_for
       fed_context(slice(seg->kin, 0, j), 3, slice(offsets, 2, j), slice(psi_rows, 2, j), P, mean_rows,
                   seg->phi_start, x, K, B);
     }
-    stack_step(*seg, j, c, c_blocks, tc, block, h_last);
+    stack_step(*seg, j, block, h_last);
     q_prev = q;
   }
+  for (int64_t k = 0; k < L; ++k) c[k] = seg->layers[k].cells.last;
   return {block, h_last, c, seg};
 }
 
@@ -198,7 +190,7 @@ Block stack_step_backward(const Segment& seg, int64_t j, Backward& bw, TensorLis
       dh_a = bw.zeros;
     }
     Block dgates = slice(bw.dg[k], 1, seg.slot(j));
-    step_backward(slice(lay.sig, 0, j), slice(lay.gd, 0, j), slice(lay.o_dt, 0, j), dh_a, dh_b, gc[k], dgates,
+    step_backward(slice(lay.sig, 0, j), lay.cells.before(j), lay.cells.tanh_after(j), dh_a, dh_b, gc[k], dgates,
                   gc_new);
     gc[k] = gc_new;
     Mat w(seg.ws[k]);
@@ -248,7 +240,7 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
   dw.resize(L);
   db.resize(L);
   const auto& top = seg->layers[L - 1];
-  const auto opt = top.o_dt.options();
+  const auto opt = top.cells.c0.options();
   const bool low = !seg->low.empty(), need_x = !seg->detach;
   Backward bw;
   bw.dg.resize(L);
@@ -285,7 +277,7 @@ std::tuple<TensorList, TensorList, Tensor, Tensor, TensorList, TensorList> segme
                  seg->gripper ? slice(seg->mask_g, 0, j) : Block(),
                  seg->mixtures > 0 ? slice(seg->idx, 0, j) : Block(), seg->phi_start,
                  seg->free_phi ? seg->phi_dim : 0, seg->mixtures, seg->dims, gq_new, dout, K, B,
-                 top.o_dt.scalar_type());
+                 opt.dtype().toScalarType());
     gq = gq_new;
     // the head's product, added to the top layer's d h (its own buffer: the step's d [x, h])
     if (low) {

@@ -37,7 +37,8 @@ namespace stm_cpp {
 struct SegLayer {
   Tensor xh;             // (K, n, B, I + H)
   Tensor xh_low;         // bf16 products: xh in bf16, each step's rows cast before its product
-  Tensor sig, gd, o_dt;  // per step (n, K, B, 4H), (n, K, B, 4H), (n, K, B, H)
+  Tensor sig;            // per step (n, K, B, 4H)
+  Cells cells;           // the cell states per step
   int64_t inputs = 0;    // I
 };
 
