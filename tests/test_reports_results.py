@@ -297,6 +297,13 @@ def test_table_one_claims_and_a_notebook_page_render_from_the_store(store, tmp_p
     assert re.search(rf"^\| {re.escape(name)} +\| ablation +\|", text, re.M)  # provenance: one row for the study
 
 
+def test_table_one_names_an_evaluated_task_only_of_a_listed_training_task(store, tmp_path, capsys):
+    name = _parents(store)["ablation"].data.tags["study_name"]
+    template = f'{{{{ table_one("reacher={name}", "stack={name}") }}}}\n'
+    assert _main(store, tmp_path, template=template) == 2
+    assert "'stack' is neither a training task" in capsys.readouterr().err
+
+
 def test_a_notebook_page_error_names_its_template(store, tmp_path, capsys):
     (tmp_path / "notebook").mkdir()
     (tmp_path / "notebook" / "t.template.md").write_text("# T\n\n{{ success_tabel }}\n")

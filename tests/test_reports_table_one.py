@@ -125,3 +125,30 @@ def test_a_study_judged_on_the_block_shows_the_strict_criterion_in_its_success_t
     assert by_cell[("pick-and-place", "a.c. LSTM-MDN")][col].startswith("57% (")  # placed: 78 %
     assert by_cell[("stacking", "a.c. LSTM-MDN")][col] == "–"
     assert criteria.STRICT_NOTE in table.notes
+
+
+def test_stacking_names_its_own_study_with_the_place_pose_restart_beside():
+    """Table I's stacking row from a study that judged it after a scripted return to a start configuration (the
+    headline v2's stack-start milestones at 30,000), the same models' rate restarting from the place pose (the
+    study's own cells' evaluation) beside it; the paper's comparisons read the same cells."""
+    from pathlib import Path
+
+    from reports.data.export_store import ExportStore
+    from reports.results.across import at_iteration
+    from reports.results.paper_claims import claims_rows
+
+    exports = ExportStore(Path(__file__).resolve().parents[1] / "reports" / "studies")
+    (v2,) = exports.studies(study="pickplace-v2")
+    (start,) = exports.studies(study="pickplace-v2-milestones-stack-start")
+    sources = {"pick-place": v2, "stack": at_iteration(start, 30000)}
+    rows = table_one.table_one_rows(sources).set_index(["eval_task", "variant"])
+    stack = rows.loc[("stack", "ac-lstm-mdn")]
+    assert stack["study"] == "pickplace-v2-milestones-stack-start@30000"
+    own = table_one.table_one_rows({"pick-place": v2}).set_index(["eval_task", "variant"])
+    assert stack["place_pose_mean"] == own.loc[("stack", "ac-lstm-mdn"), "mean"] != stack["mean"]
+    assert pd.isna(rows.loc[("pick-place", "ac-lstm-mdn"), "place_pose_mean"])  # pick-and-place has no restart
+    table = table_one.table_one_table(table_one.table_one_rows(sources), sources)
+    assert table_one.PLACE_POSE_COLUMN in table.columns and table_one.PLACE_POSE_NOTE in table.notes
+    assert table_one.PLACE_POSE_COLUMN not in table_one.table_one_table(own.reset_index(), {"pick-place": v2}).columns
+    claims = claims_rows(sources)
+    assert set(claims.loc[claims["eval_task"] == "stack", "study"]) == {"pickplace-v2-milestones-stack-start@30000"}

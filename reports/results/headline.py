@@ -1,8 +1,9 @@
 """Table I across studies in a RESULTS template: {{ table_one("TASK=STUDY", ...) }} names, per training task, the
 study whose finished models on the headline protocol fill that task's cells (so switching a task's source is one
-word of the template), and renders Table I with its bar figure (reports.study_report.table_one). {{ claims }} and
-{{ headline_train_time }} read the same sources: the paper's comparisons on those cells
-(reports.results.paper_claims) and their training time."""
+word of the template), and per evaluated task, where it names one, the study of that task's own cells (stacking
+judged under another protocol: "stack=STUDY"), and renders Table I with its bar figure
+(reports.study_report.table_one). {{ claims }} and {{ headline_train_time }} read the same sources: the paper's
+comparisons on those cells (reports.results.paper_claims) and their training time."""
 
 from __future__ import annotations
 
@@ -27,15 +28,19 @@ def headline_of(placeholders: list[Placeholder]) -> Placeholder | None:
 
 
 def sources(ph: Placeholder, named: dict[str, Study]) -> dict[str, Study]:
-    """training task -> its source study, in the placeholder's order; each task a training task."""
-    from envs.tasks import training_tasks  # here: it loads torch and pybullet
+    """training task -> its source study, in the placeholder's order, and an evaluated task of a listed training
+    task -> its own study where one is named (reports.study_report.table_one.source_of)."""
+    from envs.tasks import evaluation_tasks, training_tasks  # here: it loads torch and pybullet
 
     out = {}
     for arg in ph.args:
         task, _, name = arg.partition(SOURCE_SEPARATOR)
-        if task not in training_tasks():
-            raise ResultsError(f"{ph}: {task!r} is not a training task (known: {', '.join(training_tasks())})")
         out[task] = headline_study(named[name], str(ph))  # never a study of the validation episodes
+    evaluated = {t for task in out if task in training_tasks() for t in evaluation_tasks(task)}
+    for task in out:
+        if task not in training_tasks() and task not in evaluated:
+            raise ResultsError(f"{ph}: {task!r} is neither a training task (known: {', '.join(training_tasks())}) "
+                               "nor an evaluated task of one listed")
     return out
 
 

@@ -15,7 +15,7 @@ from experiments.stats import p_value, points
 from reports import paper
 from reports.data.store import Study
 from reports.results.comparisons import NOTE, PAPER_PAIRS, ComparisonError, compare, side
-from reports.study_report.table_one import eval_tasks
+from reports.study_report.table_one import eval_tasks, source_of
 from reports.study_report.tables import Table
 
 NAME, TITLE = "claims_table", "The paper's comparisons on Table I's cells: A − B in points (95 % interval), p"
@@ -44,12 +44,10 @@ def _paper_difference(a: tuple[str, ...], b: tuple[str, ...], eval_task: str) ->
 def claims_rows(sources: dict[str, Study]) -> pd.DataFrame:
     """One row per (comparison, evaluated task): the comparison's numbers (experiments.stats), the paper's
     difference, and NaN where a side has no finished run."""
-    from envs.tasks import model_task_of  # here: it loads torch and pybullet
-
     rows = []
     for a, b in PAPER_PAIRS:
         for eval_task in eval_tasks(sources):
-            study = sources[model_task_of(eval_task)]
+            study = source_of(sources, eval_task)
             try:
                 c = compare(side({v: study for v in a}, eval_task, False), side({v: study for v in b}, eval_task,
                                                                                   False))

@@ -137,7 +137,8 @@ def _call(node: nodes.Call, vocab: Vocabulary) -> Placeholder:
         tasks = [a.partition(SOURCE_SEPARATOR)[0] for a in ph.args]
         if not all(t and s for t, _, s in (a.partition(SOURCE_SEPARATOR) for a in ph.args)) or \
                 len(set(tasks)) < len(tasks):
-            raise ResultsError(f"{ph}: table_one takes TASK{SOURCE_SEPARATOR}STUDY, one per training task")
+            raise ResultsError(f"{ph}: table_one takes TASK{SOURCE_SEPARATOR}STUDY, one per training task (and "
+                              "per evaluated task that names its own)")
     if name == "notebook" and not re.fullmatch(r"[a-z0-9]+(-[a-z0-9]+)*", ph.arg):
         raise ResultsError(f"{ph}: a notebook topic is lower-case words joined by '-', e.g. \"data-scaling\"")
     if name == "sweep_figure" and len(ph.args) == 2 and ph.args[1] not in SWEEP_FIGURES:

@@ -54,10 +54,11 @@ def cell_strict_rate(study, row: dict) -> dict:
     return strict_rate(study, runs[runs["seed"].isin(list(row["seed_rates"]))].sort_values("seed"), row["eval_task"])
 
 
-def strict_cell(row: dict) -> str:
-    """A strict_* row's rate with its seed-level interval; – where the cell has none."""
-    mean = row.get("strict_mean")
+def beside_cell(row: dict, prefix: str = "strict_") -> str:
+    """A row's rate beside ours (strict_*, or another prefix's) with its seed-level interval; – where the cell has
+    none."""
+    mean = row.get(f"{prefix}mean")
     if mean is None or pd.isna(mean):
         return "–"
-    low, high = row["strict_seed_low"], row["strict_seed_high"]
+    low, high = row[f"{prefix}seed_low"], row[f"{prefix}seed_high"]
     return f"{stats.pct(mean)} ({stats.interval(low, high)})" if not math.isnan(low) else stats.pct(mean)

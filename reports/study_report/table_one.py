@@ -2,8 +2,11 @@
 each training task from the study named for it (a RESULTS template's {{ table_one("reacher=paper", ...) }}; a
 study's own report takes every task from the study itself), with each cell's seed-level interval, each seed's
 rate and the paper's value. Where a study judged pick-and-place on the block, a column gives the strict criterion's
-rate (reports.study_report.criteria). The figure: bars for ours with the seed-level interval, the paper's
-values as markers, one group per evaluated task that has a finished cell (no empty panel)."""
+rate (reports.study_report.criteria). An evaluated task may name its own study (stacking judged after a scripted
+return to a start configuration: `stack=STUDY`, a milestones study run with --stack-restart start); its rows then
+give, beside ours, the same models' rate restarting from the place pose in the training task's study. The figure:
+bars for ours with the seed-level interval, the paper's values as markers, one group per evaluated task that has a
+finished cell (no empty panel)."""
 
 from __future__ import annotations
 
@@ -22,13 +25,18 @@ from reports.study_report.criteria import (
     PLACE_TASK,
     STRICT_COLUMN,
     STRICT_NOTE,
+    beside_cell,
     cell_strict_rate,
     judged_on_placed,
-    strict_cell,
 )
 from reports.study_report.tables import GAP, Table
 
 NAME, TITLE = "table_one", "Table I: success rate, ours beside the paper's"
+PLACE_POSE_COLUMN = "from the place pose"
+PLACE_POSE_NOTE = (f"{PLACE_POSE_COLUMN}: stacking where ours lifts clear and returns to a start configuration "
+                   "between the blocks (a scripted move; the chosen protocol), the same models restarting each next "
+                   "block from the place pose instead, in the training task's study: mean over seeds (seed-level "
+                   "95 %), its own rollouts.")
 FIGURE_TITLE = "Table I as bars: ours with its seed-level interval, the paper's as markers"  # not the table's again
 
 
@@ -40,13 +48,28 @@ def own_sources(study: Study) -> dict[str, Study]:
     return {t: study for t in task_names() if t in tasks}
 
 
+def training_sources(sources: dict[str, Study]) -> dict[str, Study]:
+    """The sources' training tasks (the keys that are not an evaluated task's own study)."""
+    from envs.tasks import training_tasks  # here: it loads torch and pybullet
+
+    return {t: s for t, s in sources.items() if t in training_tasks()}
+
+
+def source_of(sources: dict[str, Study], eval_task: str) -> Study:
+    """The study an evaluated task's cells come from: its own where the sources name one, else its training
+    task's."""
+    from envs.tasks import model_task_of
+
+    return sources[eval_task] if eval_task in sources else sources[model_task_of(eval_task)]
+
+
 def eval_tasks(sources: dict[str, Study]) -> list[str]:
     """The evaluated tasks of the sources' training tasks that their studies evaluate (or plan to: the runs'
     eval_tasks tags), the paper's Table I tasks first in its order, then the report order."""
     from envs.tasks import evaluation_tasks, task_names
 
     found = []
-    for task, study in sources.items():
+    for task, study in training_sources(sources).items():
         evals = study.eval_metrics()
         seen = set(evals.loc[evals["task"] == task, "eval_task"]) if not evals.empty else set()
         runs = study.children[study.children["task"] == task]
@@ -58,20 +81,46 @@ def eval_tasks(sources: dict[str, Study]) -> list[str]:
     return first + sorted((t for t in dict.fromkeys(found) if t not in first), key=lambda t: rank.get(t, len(rank)))
 
 
-def table_one_rows(sources: dict[str, Study]) -> pd.DataFrame:
-    """One row per (evaluated task, variant): aggregate_success's columns for the cell in its source study, the
-    study, the paper's value and, where its rollouts record both criteria, the strict criterion's strict_*."""
+def _cells(study: Study, variants: list[str], eval_task: str) -> list[dict]:
+    return aggregate_success(study.eval_metrics(), study.children, variants, [eval_task], study.model_task_of,
+                             study.seeds).to_dict("records")
+
+
+def _stack_restart(study: Study) -> str:
+    """How a study's stacking restarts each next block (param eval.stack_restart; absent: the place pose)."""
+    col = "params.eval.stack_restart"
+    said = set(study.children[col].dropna()) if col in study.children else set()
+    return said.pop() if len(said) == 1 else ("place_pose" if not said else "mixed")
+
+
+def _place_pose_beside(sources: dict[str, Study], eval_task: str) -> Study | None:
+    """The training task's study, where an evaluated task's own study restarts stacking from a start configuration
+    and that one from the place pose: its rates go beside ours."""
     from envs.tasks import model_task_of
 
+    own, trained = source_of(sources, eval_task), sources[model_task_of(eval_task)]
+    if own is trained or _stack_restart(own) != "start" or _stack_restart(trained) != "place_pose":
+        return None
+    return trained
+
+
+def table_one_rows(sources: dict[str, Study]) -> pd.DataFrame:
+    """One row per (evaluated task, variant): aggregate_success's columns for the cell in its source study, the
+    study, the paper's value, where its rollouts record both criteria the strict criterion's strict_*, and where
+    the row's stacking restarts from a start configuration the place-pose restart's place_pose_* (the same variant
+    in the training task's study)."""
     variants = order_variants({v for s in sources.values() for v in s.variants})
     rows = []
     for eval_task in eval_tasks(sources):
-        study = sources[model_task_of(eval_task)]
-        agg = aggregate_success(study.eval_metrics(), study.children, variants, [eval_task], study.model_task_of,
-                                study.seeds)
-        for r in agg.to_dict("records"):
+        study = source_of(sources, eval_task)
+        beside = _place_pose_beside(sources, eval_task)
+        other = {r["variant"]: r for r in _cells(beside, variants, eval_task)} if beside is not None else {}
+        for r in _cells(study, variants, eval_task):
+            pose = other.get(r["variant"])
             rows.append({**r, "study": study.name, "paper": paper.paper_success(r["variant"], eval_task),
-                         **cell_strict_rate(study, r)})
+                         **cell_strict_rate(study, r),
+                         **({f"place_pose_{k}": pose[k] for k in ("mean", "seed_low", "seed_high")}
+                            if pose and pose["seeds"] else {})})
     return pd.DataFrame(rows)
 
 
@@ -82,8 +131,9 @@ def table_one_table(rows: pd.DataFrame, sources: dict[str, Study]) -> Table:
         return Table(NAME, TITLE, ["task", "variant", "ours", "paper"], [[GAP, "–", GAP, "–"]],
                      ["gap: no training task of Table I in the listed studies."])
     strict = "strict_mean" in rows and rows["strict_mean"].notna().any()
+    pose = "place_pose_mean" in rows and rows["place_pose_mean"].notna().any()
     columns = ["task", "variant", "ours", stats.SEED_COLUMN, "per seed", *([STRICT_COLUMN] if strict else []),
-               "paper", "study"]
+               *([PLACE_POSE_COLUMN] if pose else []), "paper", "study"]
     out = []
     for r in rows.to_dict("records"):
         have = bool(r["seeds"])
@@ -92,19 +142,24 @@ def table_one_table(rows: pd.DataFrame, sources: dict[str, Study]) -> Table:
                  stats.interval(r["seed_low"], r["seed_high"]) if have else "–",
                  " / ".join(stats.pct(v) for v in r["seed_rates"].values()) or "–"]
         if strict:
-            cells.append(strict_cell(r))
+            cells.append(beside_cell(r))
+        if pose:
+            cells.append(beside_cell(r, "place_pose_"))
         out.append([*cells, stats.pct(r["paper"]) if r["paper"] is not None else "–", r["study"]])
-    return Table(NAME, TITLE, columns, out, _notes(rows, sources, strict), rows.drop(columns=["seed_rates"]))
+    return Table(NAME, TITLE, columns, out, _notes(rows, sources, strict, pose), rows.drop(columns=["seed_rates"]))
 
 
-def _notes(rows: pd.DataFrame, sources: dict[str, Study], strict: bool) -> list[str]:
+def _notes(rows: pd.DataFrame, sources: dict[str, Study], strict: bool, pose: bool) -> list[str]:
     from envs.tasks import evaluation_tasks
 
     per_seed = sorted({int(n / s) for n, s in zip(rows["n"], rows["seeds"], strict=True) if s})
     shown = list(dict.fromkeys(rows["eval_task"]))
     by_study: dict[str, tuple[Study, list[str]]] = {}
-    for task, study in sources.items():
-        by_study.setdefault(study.name, (study, []))[1].extend(t for t in shown if t in evaluation_tasks(task))
+    for task in training_sources(sources):
+        for t in shown:
+            if t in evaluation_tasks(task):
+                study = source_of(sources, t)
+                by_study.setdefault(study.name, (study, []))[1].append(t)
     where = "; ".join(f"{', '.join(map(paper.task_label, tasks))}: study `{study.name}` ({study.profile} profile, "
                       f"seeds {', '.join(map(str, study.seeds))})" for study, tasks in by_study.values())
     notes = [f"Ours: {where}. Every rollout in pybullet physics, "
@@ -125,6 +180,8 @@ def _notes(rows: pd.DataFrame, sources: dict[str, Study], strict: bool) -> list[
                      "the block alone.")
     if strict:
         notes.append(STRICT_NOTE)
+    if pose:
+        notes.append(PLACE_POSE_NOTE)
     notes += [f"{paper.variant_label(r.variant)} / {paper.task_label(r.eval_task)}: {r.note}"
               for r in rows.itertuples() if r.note]
     return notes
@@ -171,7 +228,7 @@ def train_time_across(sources: dict[str, Study]) -> Table:
     iterations it planned."""
     variants = order_variants({v for s in sources.values() for v in s.variants})
     rows = []
-    for task, study in sources.items():
+    for task, study in training_sources(sources).items():
         summary = tables.train_time_summary(study)
         runs = study.children[study.children["task"] == task]
         iters = runs["params.train.iters"].dropna().unique() if "params.train.iters" in runs else []
@@ -184,5 +241,5 @@ def train_time_across(sources: dict[str, Study]) -> Table:
                  ["task", "study", "iterations", *map(paper.variant_label, variants)], rows, [tables.TRAIN_TIME_NOTE])
 
 
-__all__ = ["NAME", "TITLE", "eval_tasks", "own_sources", "table_one_figure", "table_one_rows",
-           "table_one_table", "train_time_across"]
+__all__ = ["NAME", "TITLE", "eval_tasks", "own_sources", "source_of", "table_one_figure", "table_one_rows",
+           "table_one_table", "train_time_across", "training_sources"]

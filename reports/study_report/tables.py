@@ -16,7 +16,7 @@ from experiments.weights_resume import RESUMED_TAG
 from reports import paper
 from reports.data.seed_aggregates import aggregate_success, mean_over_seeds
 from reports.data.store import Study
-from reports.study_report.criteria import STRICT_COLUMN, STRICT_NOTE, cell_strict_rate, strict_cell
+from reports.study_report.criteria import STRICT_COLUMN, STRICT_NOTE, beside_cell, cell_strict_rate
 
 GAP = "gap"
 
@@ -150,7 +150,7 @@ def paper_success_table(agg: pd.DataFrame, study: Study) -> Table:
         frame["paper"] = [pct(p) if p is not None else "–" for p in agg["paper"]]
     strict = [cell_strict_rate(study, r) for r in agg.to_dict("records")] if not agg.empty else []
     if any(strict):  # judged on the block: the strict criterion beside it, never dropped
-        frame.insert(frame.columns.get_loc("rollouts"), STRICT_COLUMN, [strict_cell(r) for r in strict])
+        frame.insert(frame.columns.get_loc("rollouts"), STRICT_COLUMN, [beside_cell(r) for r in strict])
     rows = frame.astype(str).to_numpy().tolist()
     columns = list(frame.columns) if not agg.empty else [*frame.columns, "paper"]
     notes = [f"Ours: study {study.name!r} ({study.profile} profile), {len(study.seeds)} training seed(s); "
