@@ -141,13 +141,14 @@ def test_stacking_names_its_own_study_with_the_place_pose_restart_beside():
     (v2,) = exports.studies(study="pickplace-v2")
     (start,) = exports.studies(study="pickplace-v2-milestones-stack-start")
     sources = {"pick-place": v2, "stack": at_iteration(start, 30000)}
-    rows = table_one.table_one_rows(sources).set_index(["eval_task", "variant"])
+    flat = table_one.table_one_rows(sources)
+    rows = flat.set_index(["eval_task", "variant"])
     stack = rows.loc[("stack", "ac-lstm-mdn")]
     assert stack["study"] == "pickplace-v2-milestones-stack-start@30000"
     own = table_one.table_one_rows({"pick-place": v2}).set_index(["eval_task", "variant"])
     assert stack["place_pose_mean"] == own.loc[("stack", "ac-lstm-mdn"), "mean"] != stack["mean"]
     assert pd.isna(rows.loc[("pick-place", "ac-lstm-mdn"), "place_pose_mean"])  # pick-and-place has no restart
-    table = table_one.table_one_table(table_one.table_one_rows(sources), sources)
+    table = table_one.table_one_table(flat, sources)
     assert table_one.PLACE_POSE_COLUMN in table.columns and table_one.PLACE_POSE_NOTE in table.notes
     assert table_one.PLACE_POSE_COLUMN not in table_one.table_one_table(own.reset_index(), {"pick-place": v2}).columns
     claims = claims_rows(sources)

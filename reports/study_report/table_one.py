@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from experiments import stats
+from experiments.eval_sweep_config import UNHASHED_DEFAULTS
 from reports import paper
 from reports.data.seed_aggregates import aggregate_success
 from reports.data.store import Study, order_variants
@@ -87,10 +88,11 @@ def _cells(study: Study, variants: list[str], eval_task: str) -> list[dict]:
 
 
 def _stack_restart(study: Study) -> str:
-    """How a study's stacking restarts each next block (param eval.stack_restart; absent: the place pose)."""
+    """How a study's stacking restarts each next block (param eval.stack_restart; absent: the eval config's default,
+    left out of the runs' params)."""
     col = "params.eval.stack_restart"
     said = set(study.children[col].dropna()) if col in study.children else set()
-    return said.pop() if len(said) == 1 else ("place_pose" if not said else "mixed")
+    return said.pop() if len(said) == 1 else (UNHASHED_DEFAULTS["stack_restart"] if not said else "mixed")
 
 
 def _place_pose_beside(sources: dict[str, Study], eval_task: str) -> Study | None:
